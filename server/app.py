@@ -1,0 +1,73 @@
+"""The FastAPI application factory."""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+
+from server.api import health, sites, surveys
+from server.api.limits import BodySizeLimit
+from server.auth import Authenticator
+from server.config import Settings, get_settings
+from server.db import Database
+from server.errors import ServiceError
+from server.schemas import SurveyIn
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app for ``settings`` (default: from the environment). Migrations are not run here."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        yield
+        app.state.db.dispose()
+
+    app = FastAPI(
+        title="Localizer",
+        version="1.0.0",
+        summary="Indoor positioning: RSS fingerprint surveys, models, locate and tracking sessions.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.db = Database(settings.database_url)
+    app.state.auth = Authenticator(settings, app.state.db)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_exception_handler(ServiceError, _service_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    for module in (health, sites, surveys):
+        app.include_router(module.router)
+    _document_survey_body(app)
+    return app
+
+
+async def _service_error(_: Request, exc: ServiceError) -> JSONResponse:
+    return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+
+
+async def _validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 naming each offending field, without echoing the (possibly huge) input back."""
+    errors = []
+    for err in exc.errors():
+        loc = [p for p in err.get("loc", ()) if p != "[key]"]
+        errors.append({"loc": loc, "field": ".".join(map(str, loc[1:])), "msg": err.get("msg"), "type": err.get("type")})
+    return JSONResponse({"detail": errors}, status_code=422)
+
+
+def _document_survey_body(app: FastAPI) -> None:
+    """The survey route reads its body itself (JSON or CSV); publish the JSON schema it enforces."""
+    build = app.openapi
+
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            schema = build()
+            survey = SurveyIn.model_json_schema(ref_template="#/components/schemas/{model}")
+            components = schema.setdefault("components", {}).setdefault("schemas", {})
+            components.update(survey.pop("$defs", {}))
+            components["SurveyIn"] = survey
+        return app.openapi_schema
+
+    app.openapi = openapi

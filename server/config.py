@@ -1,0 +1,46 @@
+"""Service settings, read from ``LOCALIZER_*`` environment variables."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from typing_extensions import Annotated
+
+
+def _split_keys(value: object) -> object:
+    if isinstance(value, str):
+        return [k.strip() for k in value.split(",") if k.strip()]
+    return value
+
+
+class Settings(BaseSettings):
+    """Everything an operator can set; defaults run a single process on SQLite."""
+
+    model_config = SettingsConfigDict(env_prefix="LOCALIZER_", extra="ignore")
+
+    database_url: str = Field(
+        "sqlite:///./localizer.db",
+        description="SQLAlchemy URL; SQLite file by default, postgresql+psycopg://... for production.",
+    )
+    admin_keys: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Comma-separated bootstrap admin API keys."
+    )
+    device_keys: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Comma-separated bootstrap device API keys."
+    )
+    max_body_mb: float = Field(64.0, gt=0, description="Largest request body accepted (MiB).")
+    max_survey_rows: int = Field(100_000, gt=0, description="Most fingerprints in one survey upload.")
+    max_scan_transmitters: int = Field(2048, gt=0, description="Most transmitters in one RSS scan.")
+
+    _split = field_validator("admin_keys", "device_keys", mode="before")(_split_keys)
+
+    @property
+    def max_body_bytes(self) -> int:
+        return int(self.max_body_mb * 1024 * 1024)
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,167 @@
+"""Request and response bodies of the HTTP API (API.md), with every edge rule enforced here."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Literal
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    model_validator,
+)
+
+#: ``wifi:<bssid>`` / ``ble:<uuid>:<major>:<minor>``, or a data set's name for a transmitter.
+TX_ID_PATTERN = (
+    r"^(?:wifi:(?:[0-9a-f]{2}(?::[0-9a-f]{2}){5}|[a-z0-9._-]{1,64})"
+    r"|ble:(?:[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}:\d{1,5}:\d{1,5}"
+    r"|[a-z0-9._-]{1,64}))$"
+)
+RSS_MIN_DBM, RSS_MAX_DBM = -130.0, 0.0
+
+TxId = Annotated[str, StringConstraints(pattern=TX_ID_PATTERN)]
+Dbm = Annotated[float, Field(ge=RSS_MIN_DBM, le=RSS_MAX_DBM, allow_inf_nan=False)]
+Metres = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
+Seconds = Annotated[float, Field(allow_inf_nan=False)]
+Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360, le=360)]
+Level = Annotated[int, Field(ge=-20, le=200)]
+Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
+
+
+def _non_empty(rss: dict[str, float]) -> dict[str, float]:
+    if not rss:
+        raise ValueError("scan is empty: at least one transmitter must be heard")
+    return rss
+
+
+#: One scan: transmitter id → dBm, at least one entry.
+Rss = Annotated[dict[TxId, Dbm], AfterValidator(_non_empty)]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# --- sites ---------------------------------------------------------------------------
+
+
+class FloorIn(Strict):
+    level: Level
+    name: Name | None = None
+    width_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
+    height_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
+    walls: Annotated[list[tuple[Metres, Metres, Metres, Metres]], Field(max_length=100_000)] = []
+
+
+class TransmitterIn(Strict):
+    id: TxId
+    kind: Literal["wifi", "ble"]
+    floor: Level | None = None
+    x: Metres | None = None
+    y: Metres | None = None
+    tx_power_dbm: Annotated[float, Field(ge=-130, le=30)] | None = None
+    path_loss_exponent: Annotated[float, Field(gt=0, le=10)] | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> TransmitterIn:
+        if not self.id.startswith(self.kind + ":"):
+            raise ValueError(f"id {self.id!r} does not match kind {self.kind!r}")
+        if (self.x is None) != (self.y is None):
+            raise ValueError("give both x and y, or neither")
+        return self
+
+
+TransmitterList = Annotated[list[TransmitterIn], Field(max_length=100_000)]
+
+
+class SiteIn(Strict):
+    name: Name
+    floors: Annotated[list[FloorIn], Field(max_length=1000)] = []
+    transmitters: TransmitterList = []
+
+    @model_validator(mode="after")
+    def _unique(self) -> SiteIn:
+        levels = [f.level for f in self.floors]
+        if len(levels) != len(set(levels)):
+            raise ValueError("floor levels must be unique")
+        ids = [t.id for t in self.transmitters]
+        if len(ids) != len(set(ids)):
+            raise ValueError("transmitter ids must be unique")
+        return self
+
+
+class FloorOut(BaseModel):
+    level: int
+    name: str | None
+    width_m: float | None
+    height_m: float | None
+    walls: list[list[float]]
+
+
+class TransmitterOut(BaseModel):
+    id: str
+    kind: str
+    floor: int | None
+    x: float | None
+    y: float | None
+    tx_power_dbm: float | None
+    path_loss_exponent: float | None
+
+
+class FingerprintCounts(BaseModel):
+    survey: int
+    crowd: int
+
+
+class SiteOut(BaseModel):
+    id: int
+    name: str
+    floors: list[FloorOut]
+    transmitters: int
+    reference_points: int
+    fingerprints: FingerprintCounts
+    created_at: datetime
+
+
+class ReferencePointOut(BaseModel):
+    label: str | None
+    floor: int
+    x: float
+    y: float
+    fingerprints: int
+
+
+# --- surveys ---------------------------------------------------------------------------
+
+
+class FingerprintIn(Strict):
+    x: Metres
+    y: Metres
+    floor: Level
+    rss: Rss
+    heading_deg: Degrees | None = None
+    t: Seconds | None = None
+    device: Annotated[str, StringConstraints(max_length=200)] | None = None
+    label: Annotated[str, StringConstraints(min_length=1, max_length=200)] | None = None
+
+
+class SurveyIn(Strict):
+    fingerprints: list[FingerprintIn]
+
+
+class SurveyResult(BaseModel):
+    accepted: int = Field(description="Fingerprints stored (or, on a dry run, that would be).")
+    reference_points: int = Field(description="Distinct reference points the upload touched.")
+    new_reference_points: int = Field(description="Reference points the upload created.")
+    skipped: int = Field(0, description="Rows that heard nothing (UJIIndoorLoc format only).")
+    dry_run: bool = False
+
+
+# --- service ---------------------------------------------------------------------------
+
+
+class Health(BaseModel):
+    status: Literal["ok"]

@@ -1,0 +1,167 @@
+"""Survey bodies (JSON, CSV, UJIIndoorLoc CSV) parsed into validated fingerprints.
+
+Every format ends in the same pydantic validation (`FingerprintIn`), so the edge rules
+(RSS range, NaN, transmitter id format, empty scans) are written once. Errors name the
+row (0-based index among the body's fingerprints; CSV adds the 1-based file ``line``)
+and the field.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import TypeAdapter, ValidationError
+
+from server.errors import Invalid, TooLarge, UnsupportedMedia
+from server.schemas import TX_ID_PATTERN, FingerprintIn
+
+CSV_FIELDS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
+UJI_NOT_HEARD = "100"
+UJI_FIELDS = ("LONGITUDE", "LATITUDE", "FLOOR", "USERID", "PHONEID", "TIMESTAMP")
+MAX_REPORTED_ERRORS = 100
+TX_ID_HELP = "wifi:<bssid>, wifi:<name>, ble:<uuid>:<major>:<minor> or ble:<name>, lower case"
+
+_rows_adapter = TypeAdapter(list[FingerprintIn])
+
+
+def invalid_rows(errors: list[dict[str, Any]], total: int | None = None) -> Invalid:
+    """The body is not an acceptable survey: the first errors, each naming row and field."""
+    total = len(errors) if total is None else total
+    shown = errors[:MAX_REPORTED_ERRORS]
+    if total > len(shown):
+        shown.append(_error(None, "", f"... and {total - len(shown)} more error(s)"))
+    return Invalid(shown)
+
+
+@dataclass
+class ParsedSurvey:
+    fingerprints: list[FingerprintIn]
+    skipped: int = 0
+
+
+def parse_survey(body: bytes, content_type: str, fmt: str | None, max_rows: int) -> ParsedSurvey:
+    """Parse and validate a survey body; raises `Invalid` or `TooLarge`."""
+    media = content_type.split(";")[0].strip().lower()
+    fmt = fmt or {"text/csv": "csv", "application/csv": "csv", "application/json": "json", "": "json"}.get(media)
+    skipped = 0
+    if fmt == "ujiindoorloc":
+        rows, lines, skipped = _uji_rows(_text(body))
+    elif fmt == "csv":
+        rows, lines = _csv_rows(_text(body))
+    elif fmt == "json":
+        rows, lines = _json_rows(body), None
+    else:
+        raise UnsupportedMedia(f"unsupported media type {media!r}: send application/json or text/csv")
+    if len(rows) > max_rows:
+        raise TooLarge(f"survey has {len(rows)} fingerprints; at most {max_rows} are accepted in one request")
+    if not rows:
+        raise invalid_rows([_error(None, "fingerprints", "the survey holds no fingerprints")])
+    return ParsedSurvey(_validate(rows, lines), skipped)
+
+
+def _text(body: bytes) -> str:
+    try:
+        return body.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise invalid_rows([_error(None, "body", f"not UTF-8 text: {exc}")]) from None
+
+
+def _json_rows(body: bytes) -> list[Any]:
+    try:
+        doc = json.loads(body)
+    except ValueError as exc:
+        raise invalid_rows([_error(None, "body", f"malformed JSON: {exc}")]) from None
+    if not isinstance(doc, dict) or set(doc) != {"fingerprints"} or not isinstance(doc["fingerprints"], list):
+        raise invalid_rows([_error(None, "body", 'expected an object {"fingerprints": [...]}')])
+    return doc["fingerprints"]
+
+
+def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[int]]:
+    reader = csv.reader(io.StringIO(text))
+    header = [h.strip() for h in next(reader, [])]
+    missing = [f for f in ("x", "y", "floor") if f not in header]
+    if missing:
+        raise invalid_rows([_error(None, "header", f"missing column(s) {', '.join(missing)}", line=1)])
+    if len(set(header)) != len(header):
+        raise invalid_rows([_error(None, "header", "duplicate column names", line=1)])
+    fixed = [(i, h) for i, h in enumerate(header) if h in CSV_FIELDS]
+    tx_columns = [(i, h) for i, h in enumerate(header) if h not in CSV_FIELDS]
+    bad = [h for _, h in tx_columns if not re.match(TX_ID_PATTERN, h)]
+    if bad:
+        raise invalid_rows(
+            [_error(None, f"header.{h}", f"column is neither a survey field nor a transmitter id ({TX_ID_HELP})", line=1)
+             for h in bad]
+        )
+    rows, lines = [], []
+    for cells in reader:
+        if not any(c.strip() for c in cells):
+            continue
+        if len(cells) != len(header):
+            raise invalid_rows(
+                [_error(len(rows), "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
+            )
+        row: dict[str, Any] = {h: cells[i].strip() for i, h in fixed if cells[i].strip() != ""}
+        row["rss"] = {h: cells[i].strip() for i, h in tx_columns if cells[i].strip() != ""}
+        rows.append(row)
+        lines.append(reader.line_num)
+    return rows, lines
+
+
+def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[int], int]:
+    reader = csv.reader(io.StringIO(text))
+    header = [h.strip() for h in next(reader, [])]
+    index = {h: i for i, h in enumerate(header)}
+    missing = [f for f in UJI_FIELDS[:3] if f not in index]
+    if missing:
+        raise invalid_rows([_error(None, "header", f"missing UJIIndoorLoc column(s) {', '.join(missing)}", line=1)])
+    waps = [(i, "wifi:" + h.lower()) for i, h in enumerate(header) if h.upper().startswith("WAP")]
+    x, y, floor = index["LONGITUDE"], index["LATITUDE"], index["FLOOR"]
+    user, phone, stamp = index.get("USERID"), index.get("PHONEID"), index.get("TIMESTAMP")
+    rows, lines, skipped = [], [], 0
+    for cells in reader:
+        if not cells:
+            continue
+        if len(cells) != len(header):
+            raise invalid_rows(
+                [_error(len(rows), "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
+            )
+        rss = {tx: cells[i] for i, tx in waps if cells[i] != UJI_NOT_HEARD}
+        if not rss:
+            skipped += 1
+            continue
+        row: dict[str, Any] = {"x": cells[x], "y": cells[y], "floor": cells[floor], "rss": rss}
+        if user is not None and phone is not None:
+            row["device"] = f"user{cells[user]}-phone{cells[phone]}"
+        if stamp is not None:
+            row["t"] = cells[stamp]
+        rows.append(row)
+        lines.append(reader.line_num)
+    return rows, lines, skipped
+
+
+def _validate(rows: list[Any], lines: list[int] | None) -> list[FingerprintIn]:
+    try:
+        return _rows_adapter.validate_python(rows)
+    except ValidationError as exc:
+        errors = []
+        for err in exc.errors(include_input=False, include_url=False):
+            row, *field = err["loc"]
+            msg = err["msg"]
+            if field and field[-1] == "[key]":
+                field = field[:-1]
+                msg = f"unknown transmitter id format {field[-1]!r}; expected {TX_ID_HELP}"
+            line = lines[row] if lines and isinstance(row, int) else None
+            errors.append(_error(row, ".".join(map(str, field)), msg, line=line))
+        raise invalid_rows(errors, exc.error_count()) from None
+
+
+def _error(row: int | None, field: str, msg: str, line: int | None = None) -> dict[str, Any]:
+    error: dict[str, Any] = {"row": row, "field": field, "msg": msg}
+    if line is not None:
+        error["line"] = line
+    return error

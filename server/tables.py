@@ -1,0 +1,175 @@
+"""The relational schema (SQLAlchemy 2 ORM). Alembic migrations mirror these classes."""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+
+def utcnow() -> datetime:
+    return datetime.now(timezone.utc)
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}
+
+
+class ApiKey(Base):
+    """An API key created from the CLI; only its SHA-256 is stored."""
+
+    __tablename__ = "api_keys"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    scope: Mapped[str] = mapped_column(String(10))  # "admin" | "device"
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+class Site(Base):
+    __tablename__ = "sites"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    floors: Mapped[list[Floor]] = relationship(
+        back_populates="site", order_by="Floor.level", cascade="all, delete-orphan", passive_deletes=True
+    )
+
+
+class Floor(Base):
+    __tablename__ = "floors"
+    __table_args__ = (UniqueConstraint("site_id", "level"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    level: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str | None] = mapped_column(String(200))
+    width_m: Mapped[float | None] = mapped_column(Float)
+    height_m: Mapped[float | None] = mapped_column(Float)
+    walls: Mapped[list[Any]] = mapped_column(default=list)  # [[x1, y1, x2, y2], ...]
+
+    site: Mapped[Site] = relationship(back_populates="floors")
+
+
+class Transmitter(Base):
+    """A WiFi AP or iBeacon of a site; position and radio parameters are optional."""
+
+    __tablename__ = "transmitters"
+    __table_args__ = (UniqueConstraint("site_id", "tx_id"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    tx_id: Mapped[str] = mapped_column(String(120))
+    kind: Mapped[str] = mapped_column(String(10))
+    floor: Mapped[int | None] = mapped_column(Integer)
+    x: Mapped[float | None] = mapped_column(Float)
+    y: Mapped[float | None] = mapped_column(Float)
+    tx_power_dbm: Mapped[float | None] = mapped_column(Float)
+    path_loss_exponent: Mapped[float | None] = mapped_column(Float)
+
+
+class ReferencePoint(Base):
+    """A surveyed spot: fingerprints with the same (floor, label), or (floor, x, y), share one."""
+
+    __tablename__ = "reference_points"
+    __table_args__ = (UniqueConstraint("site_id", "floor", "key"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    floor: Mapped[int] = mapped_column(Integer)
+    key: Mapped[str] = mapped_column(String(240))  # "label:<label>" or "xy:<x>,<y>"
+    label: Mapped[str | None] = mapped_column(String(200))
+    x: Mapped[float] = mapped_column(Float)
+    y: Mapped[float] = mapped_column(Float)
+
+
+class SurveyUpload(Base):
+    """One accepted survey request; its idempotency key makes a retried upload harmless."""
+
+    __tablename__ = "survey_uploads"
+    __table_args__ = (UniqueConstraint("site_id", "idempotency_key"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    result: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class Fingerprint(Base):
+    """One RSS scan at a known (survey) or estimated (crowd) position."""
+
+    __tablename__ = "fingerprints"
+    __table_args__ = (Index("ix_fingerprints_site_source", "site_id", "source"),)
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    source: Mapped[str] = mapped_column(String(10))  # "survey" | "crowd"
+    reference_point_id: Mapped[int | None] = mapped_column(
+        ForeignKey("reference_points.id", ondelete="CASCADE"), index=True
+    )
+    upload_id: Mapped[int | None] = mapped_column(ForeignKey("survey_uploads.id", ondelete="CASCADE"))
+    floor: Mapped[int] = mapped_column(Integer)
+    x: Mapped[float] = mapped_column(Float)
+    y: Mapped[float] = mapped_column(Float)
+    heading_deg: Mapped[float | None] = mapped_column(Float)
+    t: Mapped[float | None] = mapped_column(Float)
+    device: Mapped[str | None] = mapped_column(String(200))
+    rss: Mapped[dict[str, Any]] = mapped_column()  # {tx_id: dBm}
+    samples: Mapped[int] = mapped_column(Integer, default=1)  # crowd points merge several scans
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class Model(Base):
+    """A trained (or training) fingerprint model of a site; the artifact lives apart."""
+
+    __tablename__ = "models"
+    id: Mapped[int] = mapped_column(primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)
+    algorithm: Mapped[str] = mapped_column(String(40))
+    params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    use_heading: Mapped[bool] = mapped_column(Boolean, default=False)
+    kinds: Mapped[list[Any]] = mapped_column(default=list)
+    status: Mapped[str] = mapped_column(String(10), default="queued")
+    error: Mapped[str | None] = mapped_column(Text)
+    active: Mapped[bool] = mapped_column(Boolean, default=False)
+    trained_on: Mapped[int] = mapped_column(Integer, default=0)
+    metrics: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+
+class ModelArtifact(Base):
+    """The serialised trained model with its SHA-256, kept out of the hot ``models`` rows."""
+
+    __tablename__ = "model_artifacts"
+    model_id: Mapped[int] = mapped_column(ForeignKey("models.id", ondelete="CASCADE"), primary_key=True)
+    sha256: Mapped[str] = mapped_column(String(64))
+    blob: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class TrackingSession(Base):
+    """A walking session; its tracker state is stored so any server process can serve it."""
+
+    __tablename__ = "tracking_sessions"
+    id: Mapped[str] = mapped_column(String(36), primary_key=True)
+    site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)
+    owner_key: Mapped[str] = mapped_column(String(64))  # hash of the key that opened it
+    filter: Mapped[str] = mapped_column(String(20))
+    model_id: Mapped[int | None] = mapped_column(ForeignKey("models.id", ondelete="SET NULL"))
+    status: Mapped[str] = mapped_column(String(10), default="open")
+    state: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    last_seq: Mapped[int] = mapped_column(Integer, default=-1)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -1,0 +1,114 @@
+"""Sites, floors, transmitters and reference points over real HTTP."""
+
+from __future__ import annotations
+
+import pytest
+
+WALLS = [[0, 0, 10, 0], [10, 0, 10, 8]]
+SITE = {
+    "name": "Lab",
+    "floors": [{"level": 0, "name": "ground", "width_m": 20, "height_m": 10, "walls": WALLS}, {"level": 1}],
+    "transmitters": [
+        {"id": "wifi:aa:bb:cc:dd:ee:01", "kind": "wifi", "floor": 0, "x": 1.0, "y": 2.0},
+        {"id": "ble:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:7", "kind": "ble", "tx_power_dbm": -59},
+    ],
+}
+
+
+def test_create_get_list_delete_site(admin):
+    created = admin.post("/api/v1/sites", json=SITE)
+    assert created.status_code == 201, created.text
+    site = created.json()
+    assert site["name"] == "Lab"
+    assert [f["level"] for f in site["floors"]] == [0, 1]
+    assert site["floors"][0]["walls"] == WALLS
+    assert site["transmitters"] == 2
+    assert site["fingerprints"] == {"survey": 0, "crowd": 0}
+
+    assert admin.get(f"/api/v1/sites/{site['id']}").json()["name"] == "Lab"
+    assert [s["id"] for s in admin.get("/api/v1/sites").json()] == [site["id"]]
+
+    assert admin.delete(f"/api/v1/sites/{site['id']}").status_code == 204
+    assert admin.get(f"/api/v1/sites/{site['id']}").status_code == 404
+    assert admin.delete(f"/api/v1/sites/{site['id']}").status_code == 404
+
+
+def test_delete_site_removes_its_fingerprints(admin, snapshot):
+    site = admin.post("/api/v1/sites", json={"name": "Gone"}).json()
+    survey = {"fingerprints": [{"x": 1, "y": 1, "floor": 0, "rss": {"wifi:ap1": -60}}]}
+    assert admin.post(f"/api/v1/sites/{site['id']}/surveys", json=survey).status_code == 201
+    assert admin.delete(f"/api/v1/sites/{site['id']}").status_code == 204
+    rows = snapshot()
+    assert rows["fingerprints"] == [] and rows["reference_points"] == [] and rows["transmitters"] == []
+
+
+def test_duplicate_site_name_is_409(admin, snapshot):
+    assert admin.post("/api/v1/sites", json={"name": "Twice"}).status_code == 201
+    before = snapshot()
+    again = admin.post("/api/v1/sites", json={"name": "Twice"})
+    assert again.status_code == 409
+    assert "Twice" in again.json()["detail"]
+    assert snapshot() == before
+
+
+def test_put_transmitters_upserts_by_id(admin):
+    site = admin.post("/api/v1/sites", json=SITE).json()
+    url = f"/api/v1/sites/{site['id']}/transmitters"
+    answer = admin.put(
+        url,
+        json=[
+            {"id": "wifi:aa:bb:cc:dd:ee:01", "kind": "wifi", "floor": 1, "x": 5.0, "y": 6.0, "path_loss_exponent": 2.2},
+            {"id": "wifi:new-ap", "kind": "wifi"},
+        ],
+    )
+    assert answer.status_code == 200, answer.text
+    by_id = {t["id"]: t for t in answer.json()}
+    assert set(by_id) == {"wifi:aa:bb:cc:dd:ee:01", "ble:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:7", "wifi:new-ap"}
+    assert (by_id["wifi:aa:bb:cc:dd:ee:01"]["x"], by_id["wifi:aa:bb:cc:dd:ee:01"]["floor"]) == (5.0, 1)
+    assert by_id["wifi:aa:bb:cc:dd:ee:01"]["path_loss_exponent"] == 2.2
+    assert admin.get(f"/api/v1/sites/{site['id']}").json()["transmitters"] == 3
+
+
+@pytest.mark.parametrize(
+    "body, field",
+    [
+        ({"name": ""}, "name"),
+        ({"name": "x", "floors": [{"level": 0}, {"level": 0}]}, "unique"),
+        ({"name": "x", "floors": [{"level": 0, "walls": [[0, 0, 1]]}]}, "floors.0.walls.0"),
+        ({"name": "x", "transmitters": [{"id": "WIFI:AP", "kind": "wifi"}]}, "transmitters.0.id"),
+        ({"name": "x", "transmitters": [{"id": "wifi:ap", "kind": "ble"}]}, "does not match kind"),
+        ({"name": "x", "transmitters": [{"id": "wifi:ap", "kind": "wifi", "x": 1}]}, "both x and y"),
+        ({"name": "x", "unknown": 1}, "unknown"),
+    ],
+)
+def test_invalid_site_is_422_naming_the_problem(admin, snapshot, body, field):
+    before = snapshot()
+    answer = admin.post("/api/v1/sites", json=body)
+    assert answer.status_code == 422
+    assert field in answer.text
+    assert snapshot() == before
+
+
+def test_transmitters_of_unknown_site_is_404(admin):
+    assert admin.put("/api/v1/sites/999/transmitters", json=[]).status_code == 404
+    assert admin.get("/api/v1/sites/999/reference-points").status_code == 404
+
+
+def test_reference_points_group_by_label_or_position(admin):
+    site = admin.post("/api/v1/sites", json={"name": "RP"}).json()
+    survey = {
+        "fingerprints": [
+            {"x": 1, "y": 1, "floor": 0, "rss": {"wifi:ap1": -60}, "label": "A"},
+            {"x": 3, "y": 1, "floor": 0, "rss": {"wifi:ap1": -62}, "label": "A"},
+            {"x": 5, "y": 5, "floor": 0, "rss": {"wifi:ap1": -70}},
+            {"x": 5, "y": 5, "floor": 0, "rss": {"wifi:ap1": -71}},
+            {"x": 5, "y": 5, "floor": 1, "rss": {"wifi:ap1": -80}},
+        ]
+    }
+    answer = admin.post(f"/api/v1/sites/{site['id']}/surveys", json=survey)
+    assert answer.json() == {
+        "accepted": 5, "reference_points": 3, "new_reference_points": 3, "skipped": 0, "dry_run": False,
+    }
+    points = admin.get(f"/api/v1/sites/{site['id']}/reference-points").json()
+    seen = sorted([(p["floor"], p["label"], p["x"], p["y"], p["fingerprints"]) for p in points], key=str)
+    assert seen == sorted([(0, "A", 2.0, 1.0, 2), (0, None, 5.0, 5.0, 2), (1, None, 5.0, 5.0, 1)], key=str)
