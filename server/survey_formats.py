@@ -2,8 +2,8 @@
 
 Every format ends in the same pydantic validation (`FingerprintIn`), so the edge rules
 (RSS range, NaN, transmitter id format, empty scans) are written once. Errors name the
-row (0-based index among the body's fingerprints; CSV adds the 1-based file ``line``)
-and the field.
+field and the row: the 0-based index in ``fingerprints`` for JSON; for CSV the 0-based
+data row under the header (blank and skipped rows count) plus the 1-based file ``line``.
 """
 
 from __future__ import annotations
@@ -50,18 +50,18 @@ def parse_survey(body: bytes, content_type: str, fmt: str | None, max_rows: int)
     fmt = fmt or {"text/csv": "csv", "application/csv": "csv", "application/json": "json", "": "json"}.get(media)
     skipped = 0
     if fmt == "ujiindoorloc":
-        rows, lines, skipped = _uji_rows(_text(body))
+        rows, positions, skipped = _uji_rows(_text(body))
     elif fmt == "csv":
-        rows, lines = _csv_rows(_text(body))
+        rows, positions = _csv_rows(_text(body))
     elif fmt == "json":
-        rows, lines = _json_rows(body), None
+        rows, positions = _json_rows(body), None
     else:
         raise UnsupportedMedia(f"unsupported media type {media!r}: send application/json or text/csv")
     if len(rows) > max_rows:
         raise TooLarge(f"survey has {len(rows)} fingerprints; at most {max_rows} are accepted in one request")
     if not rows:
         raise invalid_rows([_error(None, "fingerprints", "the survey holds no fingerprints")])
-    return ParsedSurvey(_validate(rows, lines), skipped)
+    return ParsedSurvey(_validate(rows, positions), skipped)
 
 
 def _text(body: bytes) -> str:
@@ -81,7 +81,7 @@ def _json_rows(body: bytes) -> list[Any]:
     return doc["fingerprints"]
 
 
-def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[int]]:
+def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]]]:
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     missing = [f for f in ("x", "y", "floor") if f not in header]
@@ -97,22 +97,22 @@ def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[int]]:
             [_error(None, f"header.{h}", f"column is neither a survey field nor a transmitter id ({TX_ID_HELP})", line=1)
              for h in bad]
         )
-    rows, lines = [], []
-    for cells in reader:
+    rows, positions = [], []
+    for data_row, cells in enumerate(reader):
         if not any(c.strip() for c in cells):
             continue
         if len(cells) != len(header):
             raise invalid_rows(
-                [_error(len(rows), "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
+                [_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
             )
         row: dict[str, Any] = {h: cells[i].strip() for i, h in fixed if cells[i].strip() != ""}
         row["rss"] = {h: cells[i].strip() for i, h in tx_columns if cells[i].strip() != ""}
         rows.append(row)
-        lines.append(reader.line_num)
-    return rows, lines
+        positions.append((data_row, reader.line_num))
+    return rows, positions
 
 
-def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[int], int]:
+def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], int]:
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader, [])]
     index = {h: i for i, h in enumerate(header)}
@@ -122,13 +122,13 @@ def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[int], int]:
     waps = [(i, "wifi:" + h.lower()) for i, h in enumerate(header) if h.upper().startswith("WAP")]
     x, y, floor = index["LONGITUDE"], index["LATITUDE"], index["FLOOR"]
     user, phone, stamp = index.get("USERID"), index.get("PHONEID"), index.get("TIMESTAMP")
-    rows, lines, skipped = [], [], 0
-    for cells in reader:
+    rows, positions, skipped = [], [], 0
+    for data_row, cells in enumerate(reader):
         if not cells:
             continue
         if len(cells) != len(header):
             raise invalid_rows(
-                [_error(len(rows), "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
+                [_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
             )
         rss = {tx: cells[i] for i, tx in waps if cells[i] != UJI_NOT_HEARD}
         if not rss:
@@ -140,11 +140,12 @@ def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[int], int]:
         if stamp is not None:
             row["t"] = cells[stamp]
         rows.append(row)
-        lines.append(reader.line_num)
-    return rows, lines, skipped
+        positions.append((data_row, reader.line_num))
+    return rows, positions, skipped
 
 
-def _validate(rows: list[Any], lines: list[int] | None) -> list[FingerprintIn]:
+def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[FingerprintIn]:
+    """Validate every row; ``positions`` maps a CSV row to its (data row, file line) for the report."""
     try:
         return _rows_adapter.validate_python(rows)
     except ValidationError as exc:
@@ -155,7 +156,7 @@ def _validate(rows: list[Any], lines: list[int] | None) -> list[FingerprintIn]:
             if field and field[-1] == "[key]":
                 field = field[:-1]
                 msg = f"unknown transmitter id format {field[-1]!r}; expected {TX_ID_HELP}"
-            line = lines[row] if lines and isinstance(row, int) else None
+            row, line = positions[row] if positions else (row, None)
             errors.append(_error(row, ".".join(map(str, field)), msg, line=line))
         raise invalid_rows(errors, exc.error_count()) from None
 
