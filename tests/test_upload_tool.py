@@ -1,0 +1,67 @@
+"""The survey upload tool against a live server: chunks, validation first, idempotent re-runs."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from server.upload import chunks_of, guess_format, upload
+from tests.conftest import ADMIN_KEY
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+@pytest.fixture
+def site_id(admin) -> int:
+    return admin.post("/api/v1/sites", json={"name": "Upload", "floors": [{"level": 0}, {"level": 1}]}).json()["id"]
+
+
+def run(path: Path, live_server, site_id: int, fmt: str, **options) -> tuple[int, str]:
+    out = io.StringIO()
+    code = upload(path, live_server.url, ADMIN_KEY, site_id, fmt, progress=False, out=out, **options)
+    return code, out.getvalue()
+
+
+def survey_count(admin, site_id: int) -> int:
+    return admin.get(f"/api/v1/sites/{site_id}").json()["fingerprints"]["survey"]
+
+
+def test_chunks_keep_the_header_and_every_row():
+    chunks = list(chunks_of(FIXTURES / "uji_tiny.csv", "ujiindoorloc", 5))
+    assert [c.rows for c in chunks] == [5, 5, 2]
+    assert all(c.body.startswith(b"WAP001,") for c in chunks)
+    assert chunks[1].first_row == 5 and chunks[1].lines == [7, 8, 9, 10, 11]
+    assert guess_format(FIXTURES / "uji_tiny.csv") == "ujiindoorloc"
+
+
+def test_uploads_in_chunks_and_a_rerun_stores_nothing_twice(admin, live_server, site_id):
+    code, out = run(FIXTURES / "uji_tiny.csv", live_server, site_id, "ujiindoorloc", chunk_size=4)
+    assert code == 0 and "11 fingerprints stored, 1 skipped" in out
+    code, out = run(FIXTURES / "uji_tiny.csv", live_server, site_id, "ujiindoorloc", chunk_size=4)
+    assert code == 0 and "3 chunk(s) had been stored before" in out
+    assert survey_count(admin, site_id) == 11
+
+
+def test_a_bad_row_in_a_late_chunk_is_reported_by_line_and_nothing_is_stored(admin, live_server, site_id, tmp_path):
+    rows = ["x,y,floor,label,wifi:ap1,wifi:ap2"] + [f"{i},0,0,P{i},-50,-60" for i in range(10)]
+    rows[9] = "8,0,0,P8,-50,12"  # data row 8, file line 10: RSS above 0 dBm
+    rows[10] = "9,0,3,P9,-50,-60"  # data row 9, line 11: floor 3 is not a floor of the site
+    path = tmp_path / "survey.csv"
+    path.write_text("\n".join(rows) + "\n")
+    code, out = run(path, live_server, site_id, "csv", chunk_size=3)
+    assert code == 1
+    assert "row 8 (line 10): rss.wifi:ap2:" in out and "row 9 (line 11): floor:" in out
+    assert survey_count(admin, site_id) == 0
+
+
+def test_dry_run_stores_nothing(admin, live_server, site_id, tmp_path):
+    path = tmp_path / "survey.json"
+    path.write_text(json.dumps({"fingerprints": [{"x": 1, "y": 2, "floor": 0, "rss": {"ble:b1": -70}}] * 5}))
+    code, out = run(path, live_server, site_id, "json", chunk_size=2, dry_run=True)
+    assert code == 0 and "valid, nothing stored" in out
+    assert survey_count(admin, site_id) == 0
+    code, _ = run(path, live_server, site_id, "json", chunk_size=2)
+    assert code == 0 and survey_count(admin, site_id) == 5
