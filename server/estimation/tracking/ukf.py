@@ -23,6 +23,9 @@ from server.estimation.tracking.geometry import enforce_side
 from server.estimation.types import Fix, Step
 
 
+_MIN_VAR = 1e-12
+
+
 def _hx_identity(x):
     return x
 
@@ -68,8 +71,9 @@ class UKFTracker(Tracker):
         x_aug = np.array([self.ukf.x[0], self.ukf.x[1], step.length_m, math.radians(step.heading_deg)])
         P_aug = np.zeros((4, 4))
         P_aug[:2, :2] = self.ukf.P
-        P_aug[2, 2] = step.length_std_m**2
-        P_aug[3, 3] = math.radians(step.heading_std_deg) ** 2
+        # A floor keeps the Cholesky factor defined when the phone reports exact steps.
+        P_aug[2, 2] = max(step.length_std_m**2, _MIN_VAR)
+        P_aug[3, 3] = max(math.radians(step.heading_std_deg) ** 2, _MIN_VAR)
         sig = self._aug_points.sigma_points(x_aug, P_aug)
         moved = sig[:, :2] + np.column_stack((sig[:, 2] * np.sin(sig[:, 3]), sig[:, 2] * np.cos(sig[:, 3])))
         x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self.params["q"] * np.eye(2))
