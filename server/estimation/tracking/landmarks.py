@@ -22,10 +22,10 @@ class TukeyFilter:
 
     Every sample (also a rejected one) enters the window, so a lasting change of
     level is accepted after a few samples. The IQR has a floor (``min_iqr``) so that a
-    run of identical readings does not reject a 1 dB change.
+    run of near-identical readings does not reject ordinary RSS noise (dB).
     """
 
-    def __init__(self, window: int = 10, k: float = 1.5, min_samples: int = 4, min_iqr: float = 1.0):
+    def __init__(self, window: int = 10, k: float = 1.5, min_samples: int = 5, min_iqr: float = 3.0):
         self.window = int(window)
         self.k = float(k)
         self.min_samples = int(min_samples)
