@@ -103,3 +103,18 @@ def test_skpf_mean_is_likelihood_weighted_not_kalman():
     t.update(Fix(100.0, 0.0, 0, np.eye(2)))
     assert t.mean[0] <= math.sqrt(2) + 1e-12
     assert t.mean[0] > 1.4
+
+
+def test_skpf_sigma_points_are_filterpy_julier_kappa0_without_centre():
+    from filterpy.kalman import JulierSigmaPoints
+
+    from server.estimation.tracking.skpf import symmetric_sigma_points
+
+    x = np.array([1.0, -2.0])
+    P = np.array([[2.0, 0.7], [0.7, 0.9]])
+    ref = JulierSigmaPoints(2, kappa=0.0)
+    sig, w = symmetric_sigma_points(x, P)
+    np.testing.assert_allclose(sig, ref.sigma_points(x, P)[1:], atol=1e-12)
+    np.testing.assert_allclose(w, ref.Wm[1:], atol=1e-15)
+    assert ref.Wm[0] == 0 and np.isclose(w.sum(), 1.0)
+    np.testing.assert_allclose((w[:, None] * (sig - x)).T @ (sig - x), P, atol=1e-12)

@@ -63,7 +63,8 @@ def as_cov(cov: Any) -> np.ndarray:
     if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
         raise ValueError("covariance must be a 2x2 matrix (or a scalar variance)")
     arr = 0.5 * (arr + arr.T)
-    if np.any(np.linalg.eigvalsh(arr) <= 0):
+    # 2x2 positive definite ⇔ leading entry and determinant positive (cheaper than eigvalsh).
+    if not (arr[0, 0] > 0 and arr[0, 0] * arr[1, 1] - arr[0, 1] * arr[1, 0] > 0):
         raise ValueError("covariance must be positive definite")
     return arr
 

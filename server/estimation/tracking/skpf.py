@@ -17,6 +17,8 @@ State between calls is just (x, P); the sigma points follow from it.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from filterpy.kalman import JulierSigmaPoints, unscented_transform
 
@@ -26,13 +28,31 @@ from server.estimation.types import Fix, Step, step_displacement
 
 N_STATE = 2
 _POINTS = JulierSigmaPoints(N_STATE, kappa=0.0)  # stateless: shared
+_WEIGHTS = np.asarray(_POINTS.Wm[1:], float)  # 1/2n each; the centre point has weight κ/(n+κ) = 0
 
 
 def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 2n points x ± √n·(rows of chol(P)) and their equal weights 1/2n."""
-    sigmas = _POINTS.sigma_points(x, P)[1:]  # drop the centre point (weight κ/(n+κ) = 0)
-    weights = np.asarray(_POINTS.Wm[1:], float)
-    return sigmas, weights
+    """The 2n points x ± √n·(columns of chol(P)) and their equal weights 1/2n.
+
+    The same set as filterpy's ``JulierSigmaPoints(2, kappa=0)`` without its zero-weight
+    centre point (pinned by a test), with the 2×2 Cholesky factor written out: at this
+    size filterpy's scipy call costs more than the whole filter step.
+    """
+    a, b, c = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
+    l11 = math.sqrt(a)
+    l21 = b / l11
+    l22 = math.sqrt(c - l21 * l21)
+    r = math.sqrt(N_STATE)
+    x0, x1 = float(x[0]), float(x[1])
+    sigmas = np.array(
+        [
+            [x0 + r * l11, x1 + r * l21],
+            [x0, x1 + r * l22],
+            [x0 - r * l11, x1 - r * l21],
+            [x0, x1 - r * l22],
+        ]
+    )
+    return sigmas, _WEIGHTS
 
 
 @register
