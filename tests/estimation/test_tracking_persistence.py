@@ -74,3 +74,14 @@ def test_from_dict_rejects_wrong_class_and_version():
         TRACKERS["ekf"].from_dict(d)
     with pytest.raises(ValueError):
         tracker_from_dict({**d, "version": 99})
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf", "pf", "skpf"])
+def test_singular_fix_covariance_is_floored_not_fatal(name):
+    # A fingerprint model sure of one reference point may answer with a zero covariance.
+    t = make_tracker(name, [0, 0], np.eye(2), seed=0)
+    t.update(Fix(1.0, 1.0, 0, np.zeros((2, 2))))
+    assert np.all(np.isfinite(t.mean)) and np.linalg.det(t.covariance) > 0
+    assert np.hypot(*(t.mean - 1.0)) < 0.5  # pulled hard towards the fix
+    with pytest.raises(ValueError):
+        t.update(Fix(1.0, 1.0, 0, np.full((2, 2), np.nan)))

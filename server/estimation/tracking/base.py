@@ -69,6 +69,30 @@ def as_cov(cov: Any) -> np.ndarray:
     return arr
 
 
+#: smallest variance (m²) a fix's covariance may have along any axis when used as R
+MIN_FIX_VAR_M2 = 0.01
+
+
+def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
+    """A fix's covariance made usable as R: symmetric, eigenvalues at least ``min_var``.
+
+    Fingerprint models can answer with a singular covariance (all posterior mass on
+    one reference point); the floor keeps the update defined instead of raising.
+    """
+    arr = np.asarray(cov, dtype=float)
+    if arr.shape == ():
+        arr = np.eye(2) * float(arr)
+    if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
+        raise ValueError("fix covariance must be a finite 2x2 matrix")
+    arr = 0.5 * (arr + arr.T)
+    a, b, c = arr[0, 0], arr[0, 1], arr[1, 1]
+    lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    if lam_min >= min_var:
+        return arr
+    w, v = np.linalg.eigh(arr)
+    return (v * np.maximum(w, min_var)) @ v.T
+
+
 class Tracker(ABC):
     """A 2-D position filter fed with PDR steps and position fixes.
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import enforce_side, side_of
 from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.types import Fix, Step, step_displacement
@@ -90,7 +90,7 @@ class EKFTracker(Tracker):
         self._symmetrise()
 
     def update(self, fix: Fix) -> None:
-        R = as_cov(fix.covariance)
+        R = fix_cov(fix.covariance)
         self.ekf.update(np.asarray(fix.mean, float), _H_identity, _h_identity, R=R)
         self._symmetrise()
 

@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.ekf import parse_on_wall
 from server.estimation.tracking.geometry import crosses_walls
 from server.estimation.tracking.resampling import effective_sample_size, systematic_resample
@@ -68,7 +68,7 @@ class ParticleFilterTracker(Tracker):
             self._resample()
 
     def update(self, fix: Fix) -> None:
-        R = as_cov(fix.covariance)
+        R = fix_cov(fix.covariance)
         diff = self.particles - np.asarray(fix.mean, float)
         maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
         self._reweight(-0.5 * maha)

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from filterpy.kalman import JulierSigmaPoints, unscented_transform
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.types import Fix, Step, step_displacement
 
@@ -75,7 +75,7 @@ class SKPFTracker(Tracker):
         self._set(x, P)
 
     def update(self, fix: Fix) -> None:
-        R = as_cov(fix.covariance)
+        R = fix_cov(fix.covariance)
         z = np.asarray(fix.mean, float)
         sigmas, w = symmetric_sigma_points(self.x, self.P)  # redrawn from the prior
         Z = sigmas  # h(x) = x for a position fix

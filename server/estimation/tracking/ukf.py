@@ -17,7 +17,7 @@ import math
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.ekf import parse_on_wall, range_h
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.types import Fix, Step
@@ -84,7 +84,7 @@ class UKFTracker(Tracker):
 
     def update(self, fix: Fix) -> None:
         self._prepare_update()
-        self.ukf.update(np.asarray(fix.mean, float), R=as_cov(fix.covariance), hx=_hx_identity)
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=_hx_identity)
         self._set(self.ukf.x, self.ukf.P)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
