@@ -41,7 +41,7 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
     a, b, c = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
     l11 = math.sqrt(a)
     l21 = b / l11
-    l22 = math.sqrt(c - l21 * l21)
+    l22 = math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
     r = math.sqrt(N_STATE)
     x0, x1 = float(x[0]), float(x[1])
     sigmas = np.array(
