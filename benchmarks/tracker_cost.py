@@ -1,0 +1,76 @@
+"""Micro-benchmark: µs per predict (step) and per update (fix) for every tracker.
+
+Run from the repository root:  python benchmarks/tracker_cost.py [--repeat N]
+Also prints the cost ratio PF-1000 / SKPF measured in the same process, and the
+to_dict/from_dict cost (what a server pays per batch to load and store a session).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from server.estimation.tracking import make_tracker, tracker_from_dict, tracker_names  # noqa: E402
+from server.estimation.types import Fix, Step  # noqa: E402
+
+WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
+
+
+def _time(fn, n: int) -> float:
+    """Best of 3 runs of n calls, µs per call."""
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        for i in range(n):
+            fn(i)
+        best = min(best, (time.perf_counter() - t0) / n)
+    return best * 1e6
+
+
+def bench(name: str, repeat: int) -> dict[str, float]:
+    rng = np.random.default_rng(0)
+    steps = [Step(i, 0.7, float(h), 0.1, 5.0) for i, h in enumerate(rng.uniform(0, 360, repeat))]
+    fixes = [Fix(float(x), float(y), 0, np.eye(2) * 2.0) for x, y in rng.normal(0, 1, (repeat, 2))]
+    t = make_tracker(name, [0.0, 0.0], np.eye(2), walls=WALLS, seed=0)
+
+    def predict(i):
+        t.predict(steps[i])
+
+    def update(i):
+        t.update(fixes[i])
+
+    def round_trip(i):
+        tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+
+    return {
+        "predict_us": _time(predict, repeat),
+        "update_us": _time(update, repeat),
+        "store_load_us": _time(round_trip, max(repeat // 10, 10)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=500)
+    args = parser.parse_args()
+    results = {name: bench(name, args.repeat) for name in tracker_names()}
+    print(f"{'tracker':8s} {'predict µs':>12s} {'update µs':>12s} {'store+load µs':>14s}")
+    for name, r in results.items():
+        print(f"{name:8s} {r['predict_us']:12.1f} {r['update_us']:12.1f} {r['store_load_us']:14.1f}")
+    pf, sk = results["pf"], results["skpf"]
+    print(
+        f"PF-1000 / SKPF cost ratio: predict {pf['predict_us'] / sk['predict_us']:.1f}x, "
+        f"update {pf['update_us'] / sk['update_us']:.1f}x, "
+        f"step+update {(pf['predict_us'] + pf['update_us']) / (sk['predict_us'] + sk['update_us']):.1f}x"
+    )
+
+
+if __name__ == "__main__":
+    main()

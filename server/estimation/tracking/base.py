@@ -1,0 +1,206 @@
+"""The one interface every tracker has, and the registry that builds them by name.
+
+A tracker estimates a 2-D position ``[x, y]`` (site metres) on one floor. The server
+loads it from its stored dict, applies a batch's steps (``predict``) and fixes
+(``update``) in time order, and stores ``to_dict()`` back. ``from_dict(to_dict())``
+restores a tracker exactly: it gives the same outputs for the same future inputs.
+
+Dict format (JSON-safe, plain lists and numbers)::
+
+    {"filter": "<name>", "version": 1,
+     "params": {...constructor keyword arguments...},
+     "walls": [[x1, y1, x2, y2], ...],
+     "state": {...filter specific: means, covariances, particles, RNG state...}}
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from server.estimation.types import Fix, Step
+
+FORMAT_VERSION = 1
+
+TRACKERS: dict[str, type["Tracker"]] = {}
+
+
+def register(cls: type["Tracker"]) -> type["Tracker"]:
+    """Class decorator: make a tracker constructible by its ``name``."""
+    if not getattr(cls, "name", None):
+        raise TypeError(f"{cls.__name__} has no name")
+    if cls.name in TRACKERS and TRACKERS[cls.name] is not cls:
+        raise ValueError(f"tracker name {cls.name!r} already registered")
+    TRACKERS[cls.name] = cls
+    return cls
+
+
+def as_walls(walls: Any) -> np.ndarray:
+    """Walls as an (n, 4) float array of segments [x1, y1, x2, y2]."""
+    if walls is None:
+        return np.zeros((0, 4))
+    arr = np.asarray(walls, dtype=float)
+    if arr.size == 0:
+        return np.zeros((0, 4))
+    if arr.ndim != 2 or arr.shape[1] != 4:
+        raise ValueError("walls must be a list of [x1, y1, x2, y2] segments")
+    return arr.copy()
+
+
+def as_mean(mean: Any) -> np.ndarray:
+    arr = np.asarray(mean, dtype=float).reshape(-1)
+    if arr.shape != (2,) or not np.all(np.isfinite(arr)):
+        raise ValueError("mean must be two finite numbers [x, y]")
+    return arr.copy()
+
+
+def as_cov(cov: Any) -> np.ndarray:
+    arr = np.asarray(cov, dtype=float)
+    if arr.shape == ():
+        arr = np.eye(2) * float(arr)
+    if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
+        raise ValueError("covariance must be a 2x2 matrix (or a scalar variance)")
+    arr = 0.5 * (arr + arr.T)
+    # 2x2 positive definite ⇔ leading entry and determinant positive (cheaper than eigvalsh).
+    if not (arr[0, 0] > 0 and arr[0, 0] * arr[1, 1] - arr[0, 1] * arr[1, 0] > 0):
+        raise ValueError("covariance must be positive definite")
+    return arr
+
+
+#: smallest variance (m²) a fix's covariance may have along any axis when used as R
+MIN_FIX_VAR_M2 = 0.01
+
+
+def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
+    """A fix's covariance made usable as R: symmetric, eigenvalues at least ``min_var``.
+
+    Fingerprint models can answer with a singular covariance (all posterior mass on
+    one reference point); the floor keeps the update defined instead of raising.
+    """
+    arr = np.asarray(cov, dtype=float)
+    if arr.shape == ():
+        arr = np.eye(2) * float(arr)
+    if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
+        raise ValueError("fix covariance must be a finite 2x2 matrix")
+    arr = 0.5 * (arr + arr.T)
+    a, b, c = arr[0, 0], arr[0, 1], arr[1, 1]
+    lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    if lam_min >= min_var:
+        return arr
+    w, v = np.linalg.eigh(arr)
+    return (v * np.maximum(w, min_var)) @ v.T
+
+
+class Tracker(ABC):
+    """A 2-D position filter fed with PDR steps and position fixes.
+
+    Subclasses set ``name``, implement ``predict``, ``update``, ``mean``,
+    ``covariance``, ``reset``, ``_state()`` and ``_load_state()``, and store every
+    constructor keyword argument they accept in ``self.params`` (JSON-safe).
+    """
+
+    name: ClassVar[str] = ""
+    #: whether ``update_range`` does something (otherwise it returns False)
+    supports_range: ClassVar[bool] = False
+
+    def __init__(self, initial_mean, initial_cov, walls=None, seed: int | None = None):
+        self.walls = as_walls(walls)
+        self.seed = seed
+        self.params: dict[str, Any] = {}
+
+    # -- the filter ---------------------------------------------------------------
+    @abstractmethod
+    def predict(self, step: Step) -> None:
+        """Move the estimate by one PDR step."""
+
+    @abstractmethod
+    def update(self, fix: Fix) -> None:
+        """Correct the estimate with a position fix (fix.covariance is its R)."""
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        """Correct with a range to a beacon; returns whether it was used.
+
+        Trackers that do not support ranges ignore it and return False.
+        """
+        return False
+
+    @property
+    @abstractmethod
+    def mean(self) -> np.ndarray:
+        """Current position estimate [x, y] (a copy)."""
+
+    @property
+    @abstractmethod
+    def covariance(self) -> np.ndarray:
+        """Current 2x2 position covariance in m² (a copy)."""
+
+    @abstractmethod
+    def reset(self, mean, cov) -> None:
+        """Restart from a new Gaussian (landmark snap, floor change, re-initialisation)."""
+
+    def set_walls(self, walls) -> None:
+        """Replace the wall segments (e.g. after a floor change)."""
+        self.walls = as_walls(walls)
+
+    def search_region(self) -> tuple[float, float, float, float] | None:
+        """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its
+        candidate reference points to, or None for no restriction."""
+        return None
+
+    # -- persistence --------------------------------------------------------------
+    @abstractmethod
+    def _state(self) -> dict[str, Any]:
+        """Filter-specific JSON-safe state."""
+
+    @abstractmethod
+    def _load_state(self, state: dict[str, Any]) -> None:
+        """Inverse of ``_state``."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "filter": self.name,
+            "version": FORMAT_VERSION,
+            "params": dict(self.params),
+            "walls": self.walls.tolist(),
+            "state": self._state(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "Tracker":
+        """Restore a tracker stored by ``to_dict`` (dispatches on ``data["filter"]``)."""
+        name = data.get("filter")
+        target = TRACKERS.get(name) if cls is Tracker else cls
+        if target is None:
+            raise ValueError(f"unknown tracker {name!r}")
+        if name != target.name:
+            raise ValueError(f"dict is for tracker {name!r}, not {target.name!r}")
+        if data.get("version") != FORMAT_VERSION:
+            raise ValueError(f"unsupported tracker dict version {data.get('version')!r}")
+        state = data["state"]
+        obj = target(state["mean"], state["cov"], walls=data.get("walls"), seed=None, **data.get("params", {}))
+        obj._load_state(state)
+        return obj
+
+    def __repr__(self) -> str:
+        m = self.mean
+        return f"<{type(self).__name__} mean=({m[0]:.2f}, {m[1]:.2f}) trace={np.trace(self.covariance):.3f}>"
+
+
+def make_tracker(name: str, initial_mean, initial_cov, walls=None, seed: int | None = None, **params) -> Tracker:
+    """Build a tracker by its registered name (``kf``, ``ekf``, ``ukf``, ``pf``, ``skpf``, ``fkf``)."""
+    try:
+        cls = TRACKERS[name]
+    except KeyError:
+        raise ValueError(f"unknown tracker {name!r}; known: {sorted(TRACKERS)}") from None
+    return cls(initial_mean, initial_cov, walls=walls, seed=seed, **params)
+
+
+def tracker_from_dict(data: dict[str, Any]) -> Tracker:
+    """Restore any tracker from its ``to_dict()``."""
+    return Tracker.from_dict(data)
+
+
+def tracker_names() -> list[str]:
+    return sorted(TRACKERS)

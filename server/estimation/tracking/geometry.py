@@ -1,0 +1,73 @@
+"""Wall geometry: segment crossing tests and the wall-side constraint.
+
+Walls are line segments [x1, y1, x2, y2] in site metres (one list per floor).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-12
+
+
+def crosses_walls(start: np.ndarray, end: np.ndarray, walls: np.ndarray) -> np.ndarray:
+    """For moves start[i] → end[i] (arrays (n, 2)), whether each move crosses any wall.
+
+    Touching a wall at an end point counts as crossing; moves parallel to (and
+    overlapping) a wall do not.
+    """
+    start = np.atleast_2d(start)
+    end = np.atleast_2d(end)
+    n = start.shape[0]
+    if walls.shape[0] == 0:
+        return np.zeros(n, dtype=bool)
+    p = start[:, None, :]  # (n, 1, 2)
+    r = (end - start)[:, None, :]  # (n, 1, 2)
+    q = walls[None, :, 0:2]  # (1, w, 2)
+    s = walls[None, :, 2:4] - walls[None, :, 0:2]  # (1, w, 2)
+    denom = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]  # (n, w)
+    qp = q - p
+    t_num = qp[..., 0] * s[..., 1] - qp[..., 1] * s[..., 0]
+    u_num = qp[..., 0] * r[..., 1] - qp[..., 1] * r[..., 0]
+    ok = np.abs(denom) > _EPS
+    safe = np.where(ok, denom, 1.0)
+    t = t_num / safe
+    u = u_num / safe
+    hit = ok & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1)
+    return hit.any(axis=1)
+
+
+def crosses_any(start, end, walls: np.ndarray) -> bool:
+    return bool(crosses_walls(np.asarray(start, float), np.asarray(end, float), walls)[0])
+
+
+def side_of(point, wall) -> float:
+    """+1 if point is left of the directed wall (x1,y1)→(x2,y2), −1 if right, 0 on it."""
+    x1, y1, x2, y2 = (float(v) for v in wall)
+    cross = (x2 - x1) * (point[1] - y1) - (y2 - y1) * (point[0] - x1)
+    return float(np.sign(cross))
+
+
+def enforce_side(point, wall, side: float, margin_m: float = 0.05) -> tuple[np.ndarray, bool]:
+    """Keep ``point`` on ``side`` (+1 left / −1 right) of a wall segment.
+
+    If the point lies on the wrong side *within the extent of the segment* (its
+    perpendicular foot falls on the segment), it is moved to the foot plus
+    ``margin_m`` towards the allowed side. Beyond the segment's ends nothing is
+    behind the wall, so the point is left alone. Returns (point, moved).
+    """
+    p = np.asarray(point, dtype=float).copy()
+    x1, y1, x2, y2 = (float(v) for v in wall)
+    a = np.array([x1, y1])
+    d = np.array([x2 - x1, y2 - y1])
+    length2 = float(d @ d)
+    if length2 < _EPS or side == 0:
+        return p, False
+    t = float((p - a) @ d) / length2
+    if t < 0 or t > 1:
+        return p, False
+    if side_of(p, wall) == side:
+        return p, False
+    foot = a + t * d
+    normal = np.array([-d[1], d[0]]) / np.sqrt(length2)  # points to the left
+    return foot + side * margin_m * normal, True

@@ -1,0 +1,144 @@
+"""PF: bootstrap particle filter (1,000 particles, systematic resampling, walls kill).
+
+Prediction samples each particle's own step: d_i ~ N(d, σd²), h_i ~ N(h, σh²), plus a
+small isotropic jitter (q m² per step). A particle whose move crosses a wall dies
+(weight 0) and the set is resampled at once, so no particle survives on the far side
+of a wall. (If every particle would die — the plan disagrees with the walker — the
+step is applied without the wall test rather than losing the track.)
+Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
+fix.covariance, and resamples when N_eff < resample_threshold·N.
+Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.ekf import parse_on_wall
+from server.estimation.tracking.geometry import crosses_walls
+from server.estimation.tracking.resampling import effective_sample_size, systematic_resample
+from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
+from server.estimation.types import Fix, Step
+
+
+@register
+class ParticleFilterTracker(Tracker):
+    name = "pf"
+    supports_range = True
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        n_particles: int = 1000,
+        q: float = 0.01,
+        resample_threshold: float = 0.5,
+        max_range_m: float = 3.0,
+    ):
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+        if n_particles < 2:
+            raise ValueError("n_particles must be at least 2")
+        self.params = {
+            "n_particles": int(n_particles),
+            "q": float(q),
+            "resample_threshold": float(resample_threshold),
+            "max_range_m": float(max_range_m),
+        }
+        self.rng = make_rng(seed)
+        self.reset(initial_mean, initial_cov)
+
+    # -- filter -------------------------------------------------------------------
+    def predict(self, step: Step) -> None:
+        n = self.params["n_particles"]
+        d = step.length_m + step.length_std_m * self.rng.standard_normal(n)
+        h = math.radians(step.heading_deg) + math.radians(step.heading_std_deg) * self.rng.standard_normal(n)
+        move = np.column_stack((d * np.sin(h), d * np.cos(h)))
+        move += math.sqrt(self.params["q"]) * self.rng.standard_normal((n, 2))
+        moved = self.particles + move
+        dead = crosses_walls(self.particles, moved, self.walls)
+        self.particles = moved
+        if dead.any() and not dead.all():
+            self.weights[dead] = 0.0
+            self.weights /= self.weights.sum()
+            self._resample()
+
+    def update(self, fix: Fix) -> None:
+        R = fix_cov(fix.covariance)
+        diff = self.particles - np.asarray(fix.mean, float)
+        maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
+        self._reweight(-0.5 * maha)
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not np.isfinite(range_m) or range_m > self.params["max_range_m"] or range_std_m <= 0:
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        constraint = parse_on_wall(on_wall, self.mean)
+        dist = np.hypot(self.particles[:, 0] - beacon[0], self.particles[:, 1] - beacon[1])
+        loglik = -0.5 * ((dist - range_m) / range_std_m) ** 2
+        if constraint is not None:
+            wall, side = constraint
+            loglik = np.where(self._wrong_side(wall, side), -np.inf, loglik)
+        return self._reweight(loglik)
+
+    def _wrong_side(self, wall: np.ndarray, side: float) -> np.ndarray:
+        a, b = wall[:2], wall[2:]
+        d = b - a
+        rel = self.particles - a
+        t = rel @ d / max(float(d @ d), 1e-12)
+        cross = d[0] * rel[:, 1] - d[1] * rel[:, 0]
+        return (t >= 0) & (t <= 1) & (np.sign(cross) != side)
+
+    def _reweight(self, loglik: np.ndarray) -> bool:
+        with np.errstate(divide="ignore"):
+            logw = np.log(self.weights) + loglik
+        top = np.max(logw)
+        if not np.isfinite(top):
+            return False  # the measurement is impossible for every particle: ignore it
+        w = np.exp(logw - top)
+        self.weights = w / w.sum()
+        if effective_sample_size(self.weights) < self.params["resample_threshold"] * self.params["n_particles"]:
+            self._resample()
+        return True
+
+    def _resample(self) -> None:
+        idx = systematic_resample(self.weights, float(self.rng.random()))
+        self.particles = self.particles[idx]
+        self.weights = np.full(self.params["n_particles"], 1.0 / self.params["n_particles"])
+
+    # -- estimate -----------------------------------------------------------------
+    @property
+    def mean(self) -> np.ndarray:
+        return self.weights @ self.particles
+
+    @property
+    def covariance(self) -> np.ndarray:
+        diff = self.particles - self.mean
+        P = (diff * self.weights[:, None]).T @ diff
+        return 0.5 * (P + P.T) + 1e-9 * np.eye(2)
+
+    def reset(self, mean, cov) -> None:
+        n = self.params["n_particles"]
+        L = np.linalg.cholesky(as_cov(cov))
+        self.particles = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
+        self.weights = np.full(n, 1.0 / n)
+
+    # -- persistence --------------------------------------------------------------
+    def _state(self) -> dict:
+        return {
+            "mean": self.mean.tolist(),
+            "cov": self.covariance.tolist(),
+            "particles": self.particles.tolist(),
+            "weights": self.weights.tolist(),
+            "rng": rng_state(self.rng),
+        }
+
+    def _load_state(self, state: dict) -> None:
+        n = self.params["n_particles"]
+        self.particles = np.asarray(state["particles"], float).reshape(n, 2)
+        self.weights = np.asarray(state["weights"], float).reshape(n)
+        self.rng = rng_from_state(state["rng"])

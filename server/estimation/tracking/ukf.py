@@ -1,0 +1,124 @@
+"""UKF: unscented Kalman filter with the step's length and heading noise propagated
+through the nonlinear step model.
+
+Prediction: sigma points (filterpy MerweScaledSigmaPoints) of the augmented vector
+[x, y, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²)) are pushed through
+(x, y) + (d·sin h, d·cos h); filterpy's ``unscented_transform`` gives x⁻, P⁻ (+ q·I).
+Update: filterpy ``UnscentedKalmanFilter.update`` with h(x) = x and R = fix.covariance,
+or h(x) = ‖x − beacon‖ for a beacon range (within ``max_range_m``, wall side kept as in
+the EKF). The sigma points for an update are always recomputed from the current
+(x, P), so the stored state is just (x, P).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
+
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.ekf import parse_on_wall, range_h
+from server.estimation.tracking.geometry import enforce_side
+from server.estimation.types import Fix, Step
+
+
+_MIN_VAR = 1e-12
+
+
+def _hx_identity(x):
+    return x
+
+
+def _fx_none(x, dt):
+    return x
+
+
+@register
+class UKFTracker(Tracker):
+    name = "ukf"
+    supports_range = True
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        q: float = 0.01,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        max_range_m: float = 3.0,
+        wall_margin_m: float = 0.05,
+    ):
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+        self.params = {
+            "q": float(q),
+            "alpha": float(alpha),
+            "beta": float(beta),
+            "kappa": float(kappa),
+            "max_range_m": float(max_range_m),
+            "wall_margin_m": float(wall_margin_m),
+        }
+        self._aug_points = MerweScaledSigmaPoints(4, alpha=alpha, beta=beta, kappa=kappa)
+        points = MerweScaledSigmaPoints(2, alpha=alpha, beta=beta, kappa=kappa)
+        self.ukf = UnscentedKalmanFilter(dim_x=2, dim_z=2, dt=1.0, hx=_hx_identity, fx=_fx_none, points=points)
+        self.ukf.x = as_mean(initial_mean)
+        self.ukf.P = as_cov(initial_cov)
+
+    def predict(self, step: Step) -> None:
+        x_aug = np.array([self.ukf.x[0], self.ukf.x[1], step.length_m, math.radians(step.heading_deg)])
+        P_aug = np.zeros((4, 4))
+        P_aug[:2, :2] = self.ukf.P
+        # A floor keeps the Cholesky factor defined when the phone reports exact steps.
+        P_aug[2, 2] = max(step.length_std_m**2, _MIN_VAR)
+        P_aug[3, 3] = max(math.radians(step.heading_std_deg) ** 2, _MIN_VAR)
+        sig = self._aug_points.sigma_points(x_aug, P_aug)
+        moved = sig[:, :2] + np.column_stack((sig[:, 2] * np.sin(sig[:, 3]), sig[:, 2] * np.cos(sig[:, 3])))
+        x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self.params["q"] * np.eye(2))
+        self._set(x, P)
+
+    def _prepare_update(self) -> None:
+        self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
+
+    def update(self, fix: Fix) -> None:
+        self._prepare_update()
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=_hx_identity)
+        self._set(self.ukf.x, self.ukf.P)
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not np.isfinite(range_m) or range_m > self.params["max_range_m"] or range_std_m <= 0:
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        constraint = parse_on_wall(on_wall, self.mean)
+        self._prepare_update()
+        self.ukf.update(
+            np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h, beacon=beacon
+        )
+        x = self.ukf.x
+        if constraint is not None:
+            x, _ = enforce_side(x, constraint[0], constraint[1], self.params["wall_margin_m"])
+        self._set(x, self.ukf.P)
+        return True
+
+    def _set(self, x, P) -> None:
+        self.ukf.x = np.asarray(x, float).reshape(2).copy()
+        self.ukf.P = 0.5 * (np.asarray(P, float) + np.asarray(P, float).T)
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.ukf.x.copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.ukf.P.copy()
+
+    def reset(self, mean, cov) -> None:
+        self._set(as_mean(mean), as_cov(cov))
+
+    def _state(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist()}
+
+    def _load_state(self, state: dict) -> None:
+        self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))

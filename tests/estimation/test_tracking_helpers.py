@@ -1,0 +1,126 @@
+"""Landmark hysteresis, Tukey filter, floor hysteresis, crowdsourcing, path loss."""
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+from server.estimation.tracking import (
+    FloorTracker,
+    LandmarkCorrector,
+    apply_snap,
+    gate,
+    make_crowd_point,
+    make_tracker,
+    merge_crowd_point,
+    range_and_std,
+    range_from_rss,
+)
+from server.estimation.tracking.landmarks import ScalarKalman, TukeyFilter
+
+BEACON = "ble:b1"
+
+
+def _feed(lc, value, n):
+    snaps = []
+    for _ in range(n):
+        snaps += lc.observe({BEACON: value, "wifi:ap": -40.0})  # unknown ids are ignored
+    return snaps
+
+
+def test_landmark_snaps_once_and_again_only_after_leaving():
+    lc = LandmarkCorrector({BEACON: (5.0, 6.0)})
+    assert _feed(lc, -70.0, 10) == []
+    snaps = _feed(lc, -45.0, 100)  # enters the strong zone (> −52): one snap
+    assert len(snaps) == 1 and snaps[0].beacon_id == BEACON
+    assert (snaps[0].x, snaps[0].y) == (5.0, 6.0) and snaps[0].rss_dbm > -52
+    assert _feed(lc, -58.0, 100) == []  # weaker, but not below −65: still disarmed
+    assert lc.filtered_rss(BEACON) > -65
+    assert _feed(lc, -45.0, 100) == []  # back in the zone without having left: no snap
+    assert _feed(lc, -75.0, 100) == []  # leaves (< −65): re-armed
+    assert lc.filtered_rss(BEACON) < -65
+    assert len(_feed(lc, -45.0, 100)) == 1  # snaps again
+
+
+def test_landmark_round_trip_and_apply_snap():
+    lc = LandmarkCorrector({BEACON: (5.0, 6.0)})
+    _feed(lc, -70.0, 10)
+    restored = LandmarkCorrector.from_dict(json.loads(json.dumps(lc.to_dict())))
+    a, b = _feed(lc, -45.0, 60), _feed(restored, -45.0, 60)
+    assert a == b and len(a) == 1
+    t = make_tracker("ekf", [0, 0], np.eye(2) * 4)
+    apply_snap(t, a[0])
+    np.testing.assert_array_equal(t.mean, [5.0, 6.0])
+    np.testing.assert_array_equal(t.covariance, np.eye(2))
+
+
+def test_tukey_rejects_outlier_and_kalman_ignores_it():
+    tk = TukeyFilter(window=10)
+    for v in [-60, -61, -59, -60, -62, -60, -61]:
+        assert tk.accept(v)
+    assert not tk.accept(-90.0)
+    assert tk.accept(-60.5)
+    lc = LandmarkCorrector({BEACON: (0, 0)})
+    _feed(lc, -60.0, 8)
+    level = lc.filtered_rss(BEACON)
+    lc.observe({BEACON: -20.0})  # a single spike would otherwise snap
+    assert lc.filtered_rss(BEACON) == level
+
+
+def test_scalar_kalman_by_hand():
+    # x0 = −60 (first sample, p = R = 1.5); z = −58: p⁻ = 1.515, K = 1.515/3.015,
+    # x = −60 + K·2.
+    kf = ScalarKalman(q=0.015, r=1.5)
+    kf.update(-60.0)
+    k = 1.515 / 3.015
+    assert kf.update(-58.0) == pytest.approx(-60 + 2 * k)
+    assert kf.p == pytest.approx((1 - k) * 1.515)
+
+
+def test_floor_hysteresis():
+    ft = FloorTracker(0, required=3)
+    assert [ft.observe(f) for f in (1, 1)] == [False, False] and ft.floor == 0
+    ft.observe(0)  # agreement broken
+    assert [ft.observe(f) for f in (1, 1)] == [False, False] and ft.floor == 0
+    ft2 = FloorTracker.from_dict(json.loads(json.dumps(ft.to_dict())))
+    assert ft2.observe(1) is True and ft2.floor == 1
+    for f in (2, 3, 2, 3, 2, 3):  # flickering never settles
+        assert ft2.observe(f) is False
+    assert ft2.floor == 1
+
+
+def test_crowd_gate():
+    ok = dict(estimate_mean=[1, 1], estimate_cov=np.eye(2) * 0.5, fix_mean=[2, 1], rss={"a": -60, "b": -70, "c": -80})
+    assert gate(**ok)
+    assert not gate(**{**ok, "estimate_cov": np.eye(2) * 1.5})  # trace 3 > 2
+    assert not gate(**{**ok, "fix_mean": [5, 1]})  # 4 m apart > 3
+    assert not gate(**{**ok, "rss": {"a": -60}})
+    assert "trace" in gate(**{**ok, "estimate_cov": np.eye(2) * 5}).reason
+
+
+def test_crowd_merge_within_1m_else_insert():
+    stored = [make_crowd_point(0.0, 0.0, 0, {"a": -60.0}), make_crowd_point(10.0, 0.0, 0, {"a": -80.0})]
+    before = copy.deepcopy(stored)
+    new = make_crowd_point(0.5, 0.5, 0, {"a": -70.0, "b": -80.0})  # 0.71 m from the first
+    out, i, inserted = merge_crowd_point(stored, new)
+    assert (i, inserted, len(out)) == (0, False, 2)
+    p = out[0]
+    assert (p["x"], p["y"], p["count"]) == (0.25, 0.25, 2)
+    assert p["rss"] == {"a": -65.0, "b": -80.0} and p["counts"] == {"a": 2, "b": 1}
+    assert stored == before  # pure
+    out2, i2, _ = merge_crowd_point(out, make_crowd_point(0.25, 0.25, 0, {"a": -62.0}))
+    assert out2[0]["rss"]["a"] == pytest.approx((-65.0 * 2 - 62.0) / 3) and out2[0]["counts"]["a"] == 3
+    out3, i3, inserted3 = merge_crowd_point(out, make_crowd_point(1.5, 0.0, 0, {"a": -60.0}))
+    assert inserted3 and len(out3) == 3 and i3 == 2
+    out4, _, inserted4 = merge_crowd_point(out, make_crowd_point(0.0, 0.0, 1, {"a": -60.0}))
+    assert inserted4  # same spot, other floor
+
+
+def test_path_loss_range():
+    # RSS = R0 − 10γ log10 d with R0 = −59, γ = 2: −79 dBm ↔ 10 m.
+    assert range_from_rss(-59.0, -59.0, 2.0) == pytest.approx(1.0)
+    d, s = range_and_std(-79.0, -59.0, 2.0, rss_std_db=4.0)
+    assert d == pytest.approx(10.0)
+    assert s == pytest.approx(10.0 * math.log(10) * 4.0 / 20.0)  # ≈ 4.6 m

@@ -1,0 +1,101 @@
+"""KF and fuzzy KF pinned to hand-computed one-step results and to filterpy."""
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from server.estimation.tracking import make_tracker
+from server.estimation.types import Fix, Step
+
+
+def fix(x, y, cov=None):
+    return Fix(x, y, 0, np.eye(2) if cov is None else np.asarray(cov, float))
+
+
+def test_kf_one_step_by_hand():
+    # x0 = (0, 0), P0 = I, Q = 0.5·I, R = 1·I.
+    # Step 1 m at heading 90° (east): x⁻ = (1, 0), P⁻ = 1.5·I.
+    # Fix z = (2, 1): K = 1.5 / (1.5 + 1) = 0.6, x⁺ = (1 + 0.6·1, 0 + 0.6·1) = (1.6, 0.6),
+    # P⁺ = (1 − 0.6)·1.5 = 0.6·I.
+    t = make_tracker("kf", [0, 0], np.eye(2), q=0.5, r=1.0)
+    t.predict(Step(0.0, 1.0, 90.0))
+    np.testing.assert_allclose(t.mean, [1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(t.covariance, 1.5 * np.eye(2), atol=1e-12)
+    t.update(fix(2.0, 1.0))
+    np.testing.assert_allclose(t.mean, [1.6, 0.6], atol=1e-12)
+    np.testing.assert_allclose(t.covariance, 0.6 * np.eye(2), atol=1e-12)
+
+
+def test_kf_ignores_fix_covariance():
+    a = make_tracker("kf", [0, 0], np.eye(2), q=0.5, r=1.0)
+    b = make_tracker("kf", [0, 0], np.eye(2), q=0.5, r=1.0)
+    a.update(fix(2.0, 1.0, np.eye(2) * 0.01))
+    b.update(fix(2.0, 1.0, np.eye(2) * 100.0))
+    np.testing.assert_array_equal(a.mean, b.mean)
+
+
+def test_kf_matches_filterpy_configured_by_hand():
+    rng = np.random.default_rng(3)
+    ref = KalmanFilter(dim_x=2, dim_z=2)
+    ref.x = np.array([[1.0], [2.0]])
+    ref.P = np.diag([2.0, 0.5])
+    ref.F = np.eye(2)
+    ref.H = np.eye(2)
+    ref.Q = np.eye(2) * 0.3
+    ref.R = np.eye(2) * 2.5
+    t = make_tracker("kf", [1.0, 2.0], np.diag([2.0, 0.5]), q=0.3, r=2.5)
+    for k in range(20):
+        step = Step(k, 0.6 + 0.1 * rng.random(), 360 * rng.random())
+        d = np.array([[step.length_m * np.sin(np.radians(step.heading_deg))],
+                      [step.length_m * np.cos(np.radians(step.heading_deg))]])
+        ref.x = ref.x + d  # control input applied by hand: x⁻ = F x + u
+        ref.predict()
+        t.predict(step)
+        if k % 3 == 0:
+            z = rng.normal(size=2) * 2
+            ref.update(z.reshape(2, 1))
+            t.update(fix(*z))
+        np.testing.assert_allclose(t.mean, ref.x.ravel(), atol=1e-10)
+        np.testing.assert_allclose(t.covariance, ref.P, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "z, expected_r",
+    [((0.5, 0.0), 0.675), ((1.5, 0.0), 1.125), ((0.0, 2.5), 1.575), ((1.2, 1.2), 1.125)],
+)
+def test_fkf_switches_r_by_residual(z, expected_r):
+    # x0 = (0, 0), P0 = I; no step, so P⁻ = I and the residual is ‖z‖.
+    # K = 1 / (1 + r), x⁺ = K·z, P⁺ = (1 − K)·I = r/(1 + r)·I.
+    t = make_tracker("fkf", [0, 0], np.eye(2))
+    t.update(fix(*z, cov=np.eye(2) * 50.0))  # its own covariance is not used
+    assert t.last_r == expected_r
+    k = 1.0 / (1.0 + expected_r)
+    np.testing.assert_allclose(t.mean, k * np.asarray(z), atol=1e-12)
+    np.testing.assert_allclose(t.covariance, (1 - k) * np.eye(2), atol=1e-12)
+
+
+def test_fkf_process_noise_is_0225_per_step():
+    t = make_tracker("fkf", [0, 0], np.eye(2))
+    t.predict(Step(0, 0.7, 0))
+    t.predict(Step(1, 0.7, 0))
+    np.testing.assert_allclose(t.covariance, (1 + 2 * 0.225) * np.eye(2), atol=1e-12)
+
+
+def test_fkf_search_region_is_9m_box_around_estimate():
+    t = make_tracker("fkf", [3.0, -4.0], np.eye(2))
+    assert t.search_region() == (-6.0, -13.0, 12.0, 5.0)
+    t.predict(Step(0, 1.0, 90.0))
+    assert t.search_region() == pytest.approx((-5.0, -13.0, 13.0, 5.0))
+    assert make_tracker("kf", [0, 0], np.eye(2)).search_region() is None
+
+
+def test_fkf_pdr_track_reset_every_10_steps():
+    t = make_tracker("fkf", [0, 0], np.eye(2))
+    for k in range(9):
+        t.predict(Step(k, 1.0, 0.0))
+    t.update(fix(3.0, 9.0))  # pulls the fused estimate east, the PDR track stays
+    np.testing.assert_allclose(t.pdr_position, [0.0, 9.0])
+    assert not np.allclose(t.pdr_position, t.mean)
+    t.predict(Step(9, 1.0, 0.0))  # 10th step: PDR re-anchored on the estimate
+    np.testing.assert_allclose(t.pdr_position, t.mean)
+    assert t.pdr_position[0] > 1.0
