@@ -36,6 +36,15 @@ class Settings(BaseSettings):
 
     _split = field_validator("admin_keys", "device_keys", mode="before")(_split_keys)
 
+    @field_validator("database_url")
+    @classmethod
+    def _psycopg_driver(cls, url: str) -> str:
+        """Plain ``postgresql://`` (or ``postgres://``) URLs use the installed psycopg 3 driver."""
+        for prefix in ("postgresql://", "postgres://"):
+            if url.startswith(prefix):
+                return "postgresql+psycopg://" + url[len(prefix) :]
+        return url
+
     @property
     def max_body_bytes(self) -> int:
         return int(self.max_body_mb * 1024 * 1024)
