@@ -63,7 +63,9 @@ def acceleration_signal(t: np.ndarray, acc: np.ndarray, p: PeakDetectorParams) -
     norm = np.linalg.norm(np.asarray(acc, dtype=float), axis=1)
     grid, norm = resample_uniform(t, norm, p.rate_hz)
     win = max(1, int(round(p.detrend_window_s * p.rate_hz)))
-    trend = np.convolve(norm, np.ones(win) / win, mode="same") if len(norm) > win else np.full_like(norm, norm.mean())
+    # running mean with edge correction (zero padding would fake peaks at both ends)
+    ones = np.ones(win)
+    trend = np.convolve(norm, ones, mode="same") / np.convolve(np.ones_like(norm), ones, mode="same")
     return grid, lowpass(norm - trend, p.rate_hz, p.cutoff_hz)
 
 
