@@ -130,7 +130,8 @@ def walk_route(route: list[Waypoint] | tuple[Waypoint, ...], gait: Gait, rng: np
     s, t = 0.0, t0 + stand_s
     while s < total - 1e-9:
         length = gait.step_length_m * (1.0 + gait.length_jitter * rng.standard_normal())
-        length = min(length, total - s) if total - s > 0.5 * gait.step_length_m else total - s
+        if total - (s + length) < 0.5 * gait.step_length_m:  # no stub step at the end
+            length = total - s
         s += length
         xy, fl = point(s)
         t += 1.0 / (gait.step_freq_hz * (1.0 + gait.freq_jitter * rng.standard_normal()))
