@@ -1,0 +1,241 @@
+"""The three client runs: survey a site, track phones, crowdsource a map.
+
+Each is an ``async def`` taking the server URL and keys, so tests and the CLI call
+the same code. Results are plain dicts, JSON-serialisable, consumed by
+:mod:`client_sim.report`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from typing import Any, Iterable
+
+import httpx
+import numpy as np
+from tqdm import tqdm
+
+from .http_client import LocalizerClient
+from .phone import PhoneTrace, simulate_phone
+from .radio import RadioModel
+from .walker import route_variant
+from .world import World, get_world
+
+SURVEY_HEADINGS = (0.0, 90.0, 180.0, 270.0)
+
+
+def _world(scenario: World | str) -> World:
+    return scenario if isinstance(scenario, World) else get_world(scenario)
+
+
+# ------------------------------------------------------------------ survey
+
+
+def survey_fingerprints(world: World, scans_per_heading: int = 5, seed: int = 0,
+                        kinds: Iterable[str] = ("wifi", "ble")) -> list[dict]:
+    """Fingerprints of a survey: at every reference point, N scans facing each of four headings.
+
+    A fingerprint holds one WiFi and one BLE scan taken together; the label ``rpNNN``
+    ties a reference point's fingerprints together.
+    """
+    rng = np.random.default_rng([world.seed, seed, 0x5E])
+    radio = RadioModel(world)
+    out, t = [], 0.0
+    for i, (x, y, floor) in enumerate(world.reference_points):
+        for heading in SURVEY_HEADINGS:
+            for _ in range(scans_per_heading):
+                rss: dict[str, float] = {}
+                for kind in kinds:
+                    rss.update(radio.scan(x, y, floor, heading, kind, rng))
+                t += 1.0
+                if rss:
+                    out.append({"x": x, "y": y, "floor": floor, "rss": rss, "heading_deg": heading,
+                                "t": t, "device": "client_sim", "label": f"rp{i:03d}"})
+    return out
+
+
+async def run_survey(base_url: str, admin_key: str, scenario: World | str, *, scans_per_heading: int = 5,
+                     seed: int = 0, train: str | None = None, site_name: str | None = None, chunk: int = 2000,
+                     wait_model_s: float = 300.0, transport: httpx.AsyncBaseTransport | None = None,
+                     progress: bool = False) -> dict:
+    """Create the scenario's site, upload its survey, optionally train a model (and wait for it)."""
+    world = _world(scenario)
+    fps = survey_fingerprints(world, scans_per_heading, seed)
+    async with LocalizerClient(base_url, admin_key, transport=transport) as api:
+        site = await api.create_site(world.site_payload(site_name))
+        accepted = 0
+        for start in tqdm(range(0, len(fps), chunk), desc="survey upload", disable=not progress):
+            accepted += (await api.upload_survey(site["id"], fps[start:start + chunk]))["accepted"]
+        result: dict[str, Any] = {"site_id": site["id"], "scenario": world.name, "fingerprints": len(fps),
+                                  "accepted": accepted, "reference_points": len(world.reference_points)}
+        if train:
+            model = await api.train_model(site["id"], train)
+            result["model"] = await api.wait_model(site["id"], model["id"], wait_model_s)
+    return result
+
+
+# ------------------------------------------------------------------ track
+
+
+def make_batches(trace: PhoneTrace, interval_s: float) -> list[dict]:
+    """Steps and scans grouped into batches every ``interval_s`` of phone time, seq from 0."""
+    t0, t1 = trace.walk.t_start, trace.walk.t_end
+    edges = np.arange(t0 + interval_s, t1 + interval_s, interval_s)
+    batches, lo = [], -math.inf
+    for seq, hi in enumerate(edges):
+        batches.append({
+            "seq": seq,
+            "steps": [s.to_api() for s in trace.steps if lo < s.t <= hi],
+            "scans": [s for s in trace.scans if lo < s["t"] <= hi],
+        })
+        lo = hi
+    return batches
+
+
+def _estimate_row(est: dict, trace: PhoneTrace) -> dict:
+    tx, ty, tf = trace.truth_at(est["t"])
+    return {"t": est["t"], "x": est["x"], "y": est["y"], "floor": est["floor"], "source": est.get("source"),
+            "true_x": round(tx, 3), "true_y": round(ty, 3), "true_floor": tf,
+            "error_m": round(math.hypot(est["x"] - tx, est["y"] - ty), 3)}
+
+
+async def track_phone(api: LocalizerClient, site_id, trace: PhoneTrace, filter: str, *, initial: bool = True,
+                      interval_s: float = 2.0, speed: float = 0.0, retries: int = 4, on_batch=None) -> dict:
+    """One phone's session: open, post every batch (retrying with the same seq), read the track."""
+    walk = trace.walk
+    init = None
+    if initial:
+        init = {"x": float(walk.xy[0, 0]), "y": float(walk.xy[0, 1]), "floor": int(walk.floor[0]),
+                "heading_deg": float(walk.heading_deg[0])}
+    session = await api.open_session(site_id, filter, init)
+    rows, failures = [], 0
+    started = time.monotonic()
+    for batch in make_batches(trace, interval_s):
+        if speed > 0:  # pace batches like a phone in real time (scaled)
+            due = (batch["seq"] + 1) * interval_s / speed
+            await asyncio.sleep(max(0.0, due - (time.monotonic() - started)))
+        try:
+            res = await api.post_batch(session["id"], batch, retries)
+            rows.append(_estimate_row(res["estimate"], trace))
+        except Exception:  # noqa: BLE001 - one phone's failure is recorded, not fatal
+            failures += 1
+        if on_batch:
+            on_batch()
+    track = []
+    try:
+        track = [_estimate_row(e, trace) for e in await api.get_track(session["id"])]
+        await api.close_session(session["id"])
+    except Exception:  # noqa: BLE001
+        failures += 1
+    dr = trace.dead_reckoning()
+    pdr_rows = [_estimate_row({"t": float(t), "x": float(x), "y": float(y), "floor": int(walk.floor[0])}, trace)
+                for t, x, y in dr]
+    return {"session_id": session["id"], "filter": filter, "batch_estimates": rows, "track": track,
+            "pdr_only": pdr_rows, "failed_posts": failures, "steps_true": walk.n_steps,
+            "steps_detected": len(trace.steps), "scans": len(trace.scans)}
+
+
+def plan_phones(world: World, phones: int, filters: list[str], seed: int, wifi_hz: float, ble_hz: float,
+                random_routes: bool = False) -> list[tuple[int, str, int, PhoneTrace]]:
+    """(phone index, filter, route index, trace) for each phone; filters assigned round-robin."""
+    radio = RadioModel(world)
+    plans = []
+    for i in range(phones):
+        rng = np.random.default_rng([seed, i, 0x7A])
+        if random_routes:
+            route = route_variant(world.routes, rng)
+            r_idx = -1
+        else:
+            r_idx = i % len(world.routes)
+            route = world.routes[r_idx]
+        trace = simulate_phone(world, route, seed * 100_003 + i, wifi_hz=wifi_hz, ble_hz=ble_hz, radio=radio)
+        plans.append((i, filters[i % len(filters)], r_idx, trace))
+    return plans
+
+
+async def run_track(base_url: str, device_key: str, scenario: World | str, site_id, *, phones: int = 4,
+                    filters: list[str] | tuple[str, ...] = ("skpf",), seed: int = 0, interval_s: float = 2.0,
+                    speed: float = 0.0, wifi_hz: float = 1.0, ble_hz: float = 2.0, initial: bool = True,
+                    retries: int = 4, transport: httpx.AsyncBaseTransport | None = None,
+                    progress: bool = False) -> dict:
+    """K phones walk the scenario's routes concurrently, each in its own session."""
+    world = _world(scenario)
+    plans = plan_phones(world, phones, list(filters), seed, wifi_hz, ble_hz)
+    n_batches = sum(len(make_batches(p[3], interval_s)) for p in plans)
+    bar = tqdm(total=n_batches, desc="batches", disable=not progress)
+    async with LocalizerClient(base_url, device_key, transport=transport) as api:
+        async def one(i, flt, r_idx, trace):
+            try:
+                res = await track_phone(api, site_id, trace, flt, initial=initial, interval_s=interval_s,
+                                        speed=speed, retries=retries, on_batch=bar.update)
+            except Exception as exc:  # noqa: BLE001 - e.g. the session could not be opened
+                res = {"filter": flt, "error": str(exc), "batch_estimates": [], "track": [], "pdr_only": []}
+            return dict(res, phone=i, route=r_idx, truth=trace.walk.to_dict())
+
+        out = await asyncio.gather(*(one(*p) for p in plans))
+    bar.close()
+    return {"kind": "track", "scenario": world.name, "site_id": site_id, "seed": seed, "initial": initial,
+            "interval_s": interval_s, "phones": out}
+
+
+# ------------------------------------------------------------------ crowd
+
+
+async def probe_locate(api: LocalizerClient, world: World, site_id, n: int, seed: int) -> dict:
+    """Cold-start accuracy: ``locate`` fresh scans at ``n`` random reference points."""
+    rng = np.random.default_rng([world.seed, seed, 0xC0])
+    radio = RadioModel(world)
+    errors, floor_hits, failures = [], 0, 0
+    for k in rng.choice(len(world.reference_points), size=min(n, len(world.reference_points)), replace=False):
+        x, y, floor = world.reference_points[k]
+        heading = float(rng.choice([0.0, 90.0, 180.0, 270.0]))
+        rss = {**radio.scan(x, y, floor, heading, "wifi", rng), **radio.scan(x, y, floor, heading, "ble", rng)}
+        try:
+            fix = await api.locate(site_id, rss, heading)
+        except Exception:  # noqa: BLE001 - 409 before any model is ready
+            failures += 1
+            continue
+        errors.append(math.hypot(fix["x"] - x, fix["y"] - y))
+        floor_hits += int(fix["floor"] == floor)
+    return {"probes": n, "answered": len(errors), "failed": failures,
+            "mean_error_m": float(np.mean(errors)) if errors else None,
+            "floor_hit_rate": floor_hits / len(errors) if errors else None}
+
+
+async def run_crowd(base_url: str, admin_key: str, device_key: str, scenario: World | str, *, rounds: int = 3,
+                    phones: int = 10, filter: str = "skpf", seed: int = 0, train: str | None = "knn",
+                    probes: int = 20, site_id=None, interval_s: float = 2.0, wifi_hz: float = 1.0,
+                    ble_hz: float = 2.0, transport: httpx.AsyncBaseTransport | None = None,
+                    progress: bool = False) -> dict:
+    """Phones without a survey walk (sessions without ``initial``) in rounds; after each round
+    a model is trained on what the server crowdsourced, and cold-start fixes are probed."""
+    world = _world(scenario)
+    async with LocalizerClient(base_url, admin_key, transport=transport) as admin, \
+            LocalizerClient(base_url, device_key, transport=transport) as device:
+        if site_id is None:
+            site_id = (await admin.create_site(world.site_payload(f"{world.name}-crowd")))["id"]
+        out_rounds = []
+        for r in tqdm(range(rounds), desc="crowd rounds", disable=not progress):
+            plans = plan_phones(world, phones, [filter], seed * 1000 + r, wifi_hz, ble_hz, random_routes=True)
+            results = await asyncio.gather(*(
+                track_phone(device, site_id, trace, flt, initial=False, interval_s=interval_s)
+                for _, flt, _, trace in plans), return_exceptions=True)
+            walked = [x for x in results if isinstance(x, dict)]
+            entry: dict[str, Any] = {"round": r, "phones": phones, "sessions_ok": len(walked),
+                                     "session_errors": [str(x) for x in results if not isinstance(x, dict)][:3]}
+            errs = [e["error_m"] for res in walked for e in res["batch_estimates"]]
+            entry["tracking_mean_error_m"] = float(np.mean(errs)) if errs else None
+            if train:
+                try:
+                    model = await admin.train_model(site_id, train)
+                    model = await admin.wait_model(site_id, model["id"])
+                    if model.get("status") == "ready" and not model.get("active"):
+                        model = await admin.activate_model(site_id, model["id"])
+                    entry["model"] = model
+                except Exception as exc:  # noqa: BLE001 - e.g. nothing crowdsourced yet
+                    entry["model_error"] = str(exc)
+            entry["site"] = await admin.get_site(site_id)
+            entry["locate"] = await probe_locate(device, world, site_id, probes, seed * 1000 + r)
+            out_rounds.append(entry)
+    return {"kind": "crowd", "scenario": world.name, "site_id": site_id, "seed": seed, "rounds": out_rounds}
