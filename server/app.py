@@ -8,13 +8,14 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import health, sites, surveys
+from server.api import health, sessions, sites, surveys
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
 from server.errors import ServiceError
 from server.schemas import SurveyIn
+from server.services.sessions import SessionService
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -38,7 +39,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, sites, surveys):
+    app.state.sessions = SessionService(app.state.db, getattr(app.state, "positioning", None))
+    for module in (health, sites, surveys, sessions):
         app.include_router(module.router)
     _document_survey_body(app)
     return app

@@ -13,6 +13,7 @@ from server.schemas import (
     ReferencePointOut,
     SiteIn,
     SiteOut,
+    SitePatch,
     TransmitterList,
     TransmitterOut,
 )
@@ -32,6 +33,7 @@ def _site_out(site: Site, counts: dict[str, int]) -> SiteOut:
     return SiteOut(
         id=site.id,
         name=site.name,
+        settings=dict(site.settings or {}),
         floors=[FloorOut.model_validate(f, from_attributes=True) for f in site.floors],
         transmitters=counts["transmitters"],
         reference_points=counts["reference_points"],
@@ -68,6 +70,16 @@ def list_sites(db: DB, _: Admin) -> list[SiteOut]:
 def get_site(site_id: int, db: DB, _: Admin) -> SiteOut:
     with db.transaction() as s:
         site = existing_site(s, site_id)
+        return _site_out(site, repo.site_counts(s, [site_id])[site_id])
+
+
+@router.patch("/{site_id}", response_model=SiteOut)
+def patch_site(site_id: int, body: SitePatch, db: DB, _: Admin) -> SiteOut:
+    """Change site settings (given keys are merged into the stored ones)."""
+    with db.transaction() as s:
+        site = existing_site(s, site_id)
+        repo.set_site_settings(s, site_id, {**(site.settings or {}), **body.settings.model_dump(exclude_unset=True)})
+        s.refresh(site)
         return _site_out(site, repo.site_counts(s, [site_id])[site_id])
 
 
