@@ -257,7 +257,9 @@ class FingerprintModel:
             m = None if mask is None else mask[sl]
             logs = self._log_scores(Q[sl], None if Hq is None else Hq[sl], m)
             if m is not None:
-                logs = np.where(m, logs, -np.inf)
+                masked = np.where(m, logs, -np.inf)
+                dead = ~np.isfinite(masked).any(axis=1)  # restriction left nothing: ignore it
+                logs = np.where(dead[:, None], logs, masked)
             parts.append(self._reduce(logs))
         return _concat_predictions(parts)
 
@@ -277,12 +279,13 @@ class FingerprintModel:
             cands = [
                 Candidate(label=labels[r], x=float(self.rp_xy_[r, 0]), y=float(self.rp_xy_[r, 1]),
                           floor=int(self.rp_.floor[r]), probability=float(p))
-                for r, p in zip(pred.top_rp[i], pred.top_p[i]) if p > 0
+                for r, p in zip(pred.top_rp[i], pred.top_p[i]) if p > 0 and r >= 0
             ]
+            best = int(pred.best_rp[i])
             out.append(Fix(
                 x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
                 covariance=pred.covariance[i].copy(),
-                reference_point=labels[pred.best_rp[i]] if len(labels) else None,
+                reference_point=labels[best] if best >= 0 else None,
                 candidates=cands,
             ))
         return out

@@ -6,17 +6,17 @@ from .base import FingerprintModel
 from .kde import KDEModel
 from .knn import KNNModel
 from .nbc import NBCModel
-# from .propagation import PropagationModel
-# from .svm import SVMModel
+from .propagation import PropagationModel
+from .svm import SVMModel
 from .tkbe import TKBEModel
 
 ALGORITHMS: dict[str, type[FingerprintModel]] = {
     "nbc": NBCModel,
     "knn": KNNModel,
-#
+    "svm": SVMModel,
     "kde": KDEModel,
     "tkbe": TKBEModel,
-#
+    "propagation": PropagationModel,
 }
 
 
