@@ -23,6 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     serve.add_argument("--log-level", default="info")
 
     commands.add_parser("migrate", help="apply pending database migrations and exit")
+    commands.add_parser("worker", help="train queued models (for servers run with LOCALIZER_EMBEDDED_WORKER=false)")
 
     keys = commands.add_parser("keys", help="manage API keys (stored hashed)")
     key_commands = keys.add_subparsers(dest="keys_command", required=True)
@@ -43,6 +44,14 @@ def main(argv: list[str] | None = None) -> int:
             "server.app:create_app", factory=True, host=args.host, port=args.port,
             workers=args.workers, log_level=args.log_level,
         )
+    elif args.command == "worker":
+        from server.services.training import TrainingWorker
+
+        worker = TrainingWorker(settings.database_url, settings.training_poll_s, settings.training_stale_after_s)
+        try:
+            worker.serve_forever()
+        except KeyboardInterrupt:
+            worker.stop()
     elif args.command == "keys":
         return _keys(Database(settings.database_url), args)
     return 0

@@ -8,14 +8,16 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import health, sessions, sites, surveys
+from server.api import health, locate, models, sessions, sites, surveys
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
 from server.errors import ServiceError
 from server.schemas import SurveyIn
+from server.services.positioning import ModelCache, Positioning
 from server.services.sessions import SessionService
+from server.services.training import TrainingWorker
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -24,7 +26,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        if settings.embedded_worker:
+            app.state.trainer = TrainingWorker(
+                settings.database_url, settings.training_poll_s, settings.training_stale_after_s
+            ).start()
         yield
+        if app.state.trainer is not None:
+            app.state.trainer.stop()
         app.state.db.dispose()
 
     app = FastAPI(
@@ -36,11 +44,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.db = Database(settings.database_url)
     app.state.auth = Authenticator(settings, app.state.db)
+    app.state.positioning = Positioning(app.state.db, ModelCache(app.state.db, settings.model_cache_size))
+    app.state.trainer = None
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
-    app.state.sessions = SessionService(app.state.db, getattr(app.state, "positioning", None))
-    for module in (health, sites, surveys, sessions):
+    app.state.sessions = SessionService(app.state.db, app.state.positioning)
+    for module in (health, sites, surveys, models, locate, sessions):
         app.include_router(module.router)
     _document_survey_body(app)
     return app

@@ -32,7 +32,12 @@ class Settings(BaseSettings):
     )
     max_body_mb: float = Field(64.0, gt=0, description="Largest request body accepted (MiB).")
     max_survey_rows: int = Field(100_000, gt=0, description="Most fingerprints in one survey upload.")
-    max_scan_transmitters: int = Field(2048, gt=0, description="Most transmitters in one RSS scan.")
+    embedded_worker: bool = Field(True, description="Train models in this server process's own worker.")
+    training_poll_s: float = Field(2.0, gt=0, description="How often a worker looks for queued models.")
+    training_stale_after_s: float = Field(
+        1800.0, gt=0, description="A job claimed longer ago than this (its worker died) is trained again."
+    )
+    model_cache_size: int = Field(8, gt=0, description="Trained models kept loaded per process.")
 
     _split = field_validator("admin_keys", "device_keys", mode="before")(_split_keys)
 

@@ -18,6 +18,7 @@ from server.tables import (
     Fingerprint,
     Floor,
     Model,
+    ModelArtifact,
     ReferencePoint,
     SessionBatch,
     Site,
@@ -268,13 +269,6 @@ def floor_walls(s: Session, site_id: int, level: int) -> list[list[float]]:
     return s.scalar(select(Floor.walls).where(Floor.site_id == site_id, Floor.level == level)) or []
 
 
-def positioned_transmitters(s: Session, site_id: int) -> Sequence[Transmitter]:
-    """Transmitters of a site with a known position (for ranges, landmarks, multilateration)."""
-    return s.scalars(
-        select(Transmitter).where(Transmitter.site_id == site_id, Transmitter.x.is_not(None), Transmitter.y.is_not(None))
-    ).all()
-
-
 def site_settings(s: Session, site_id: int) -> dict | None:
     """A site's settings, or None when the site does not exist."""
     row = s.execute(select(Site.settings).where(Site.id == site_id)).first()
@@ -431,3 +425,122 @@ def _chunks(items: list[int], size: int) -> Iterable[list[int]]:
     for i in range(0, len(items), size):
         yield items[i : i + size]
 
+
+
+# --- models ---------------------------------------------------------------------------------
+
+
+def add_model(
+    s: Session, site_id: int, algorithm: str, params: dict, use_heading: bool, kinds: list[str], include_crowd: bool
+) -> Model:
+    model = Model(
+        site_id=site_id, algorithm=algorithm, params=params, use_heading=use_heading, kinds=kinds,
+        include_crowd=include_crowd, status="queued",
+    )
+    s.add(model)
+    s.flush()
+    return model
+
+
+def get_model(s: Session, site_id: int, model_id: int) -> Model | None:
+    return s.scalar(select(Model).where(Model.site_id == site_id, Model.id == model_id))
+
+
+def list_models(s: Session, site_id: int) -> Sequence[Model]:
+    return s.scalars(select(Model).where(Model.site_id == site_id).order_by(Model.id)).all()
+
+
+def serving_model(s: Session, site_id: int, model_id: int | None) -> tuple[int, str, str] | None:
+    """(id, algorithm, status) of ``model_id`` on the site, or of the site's active model."""
+    chosen = Model.id == model_id if model_id is not None else Model.active.is_(True)
+    row = s.execute(
+        select(Model.id, Model.algorithm, Model.status).where(Model.site_id == site_id, chosen)
+    ).first()
+    return tuple(row) if row else None
+
+
+def claim_next_model(s: Session, stale_before: datetime) -> int | None:
+    """Take the oldest queued job (or one whose worker died) with a compare-and-set, so two
+    workers never train the same model."""
+    candidates = s.scalars(
+        select(Model.id)
+        .where(
+            (Model.status == "queued")
+            | ((Model.status == "training") & (Model.claimed_at < stale_before))
+        )
+        .order_by(Model.id)
+        .limit(5)
+    ).all()
+    for model_id in candidates:
+        taken = s.execute(
+            update(Model)
+            .where(
+                Model.id == model_id,
+                (Model.status == "queued") | ((Model.status == "training") & (Model.claimed_at < stale_before)),
+            )
+            .values(status="training", claimed_at=datetime.now(timezone.utc), error=None)
+        )
+        if taken.rowcount == 1:
+            return model_id
+    return None
+
+
+def training_job(s: Session, model_id: int) -> Model | None:
+    return s.get(Model, model_id)
+
+
+def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[dict]:
+    """Fingerprints as plain dicts for the estimation code, with their reference point's label."""
+    query = (
+        select(
+            Fingerprint.x, Fingerprint.y, Fingerprint.floor, Fingerprint.rss, Fingerprint.heading_deg,
+            Fingerprint.device, Fingerprint.t, ReferencePoint.label,
+        )
+        .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
+        .where(Fingerprint.site_id == site_id)
+        .order_by(Fingerprint.id)
+    )
+    if not include_crowd:
+        query = query.where(Fingerprint.source == "survey")
+    return [row._asdict() for row in s.execute(query)]
+
+
+def positioned_transmitters(s: Session, site_id: int) -> list[dict]:
+    """Transmitters with a known position, as plain dicts for the propagation model."""
+    rows = s.execute(
+        select(
+            Transmitter.tx_id.label("id"), Transmitter.kind, Transmitter.floor, Transmitter.x, Transmitter.y,
+            Transmitter.tx_power_dbm, Transmitter.path_loss_exponent,
+        ).where(Transmitter.site_id == site_id, Transmitter.x.is_not(None))
+    )
+    return [row._asdict() for row in rows]
+
+
+def finish_training(
+    s: Session, model_id: int, blob: bytes, sha256: str, trained_on: int, metrics: dict | None
+) -> None:
+    s.add(ModelArtifact(model_id=model_id, sha256=sha256, blob=blob))
+    s.execute(
+        update(Model)
+        .where(Model.id == model_id)
+        .values(status="ready", trained_on=trained_on, metrics=metrics, error=None)
+    )
+
+
+def fail_training(s: Session, model_id: int, error: str) -> None:
+    s.execute(update(Model).where(Model.id == model_id).values(status="failed", error=error[:2000]))
+
+
+def has_active_model(s: Session, site_id: int) -> bool:
+    return s.scalar(select(func.count()).select_from(Model).where(Model.site_id == site_id, Model.active)) > 0
+
+
+def activate_model(s: Session, site_id: int, model_id: int) -> None:
+    """Make ``model_id`` the site's only active model. Readers see the old or the new one,
+    never none: both statements commit together."""
+    s.execute(update(Model).where(Model.site_id == site_id, Model.active, Model.id != model_id).values(active=False))
+    s.execute(update(Model).where(Model.id == model_id).values(active=True))
+
+
+def model_artifact(s: Session, model_id: int) -> ModelArtifact | None:
+    return s.get(ModelArtifact, model_id)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
@@ -278,3 +278,68 @@ class SessionOut(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok"]
+
+
+# --- models and locate -------------------------------------------------------------------
+
+
+class ModelIn(Strict):
+    algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)]
+    params: Annotated[dict[str, Any], Field(max_length=50)] = {}
+    use_heading: bool = False
+    kinds: Annotated[list[Literal["wifi", "ble"]], Field(min_length=1, max_length=2)] | None = None
+    include_crowd: bool = Field(True, description="Train on crowdsourced fingerprints too (extension).")
+
+
+class ModelMetrics(BaseModel):
+    mean_error_m: float | None
+    p50_error_m: float | None
+    p90_error_m: float | None
+    mapping_rate: float | None
+    floor_hit_rate: float | None
+    fit_time_s: float | None = None
+    validated_on: int | None = Field(None, description="Held-out fingerprints the metrics come from.")
+    building_hit_rate: float | None = None
+    us_per_query: float | None = None
+
+
+class ModelOut(BaseModel):
+    id: int
+    site_id: int
+    algorithm: str
+    params: dict[str, Any]
+    use_heading: bool
+    kinds: list[str] | None
+    include_crowd: bool
+    status: Literal["queued", "training", "ready", "failed"]
+    error: str | None = None
+    active: bool
+    trained_on: int
+    metrics: ModelMetrics | None = None
+    created_at: datetime
+    updated_at: datetime
+
+
+class LocateIn(Strict):
+    rss: Annotated[Rss, Field(max_length=2048)]
+    heading_deg: Degrees | None = None
+    model_id: int | None = None
+
+
+class CandidateOut(BaseModel):
+    label: str | None
+    x: float
+    y: float
+    floor: int
+    probability: float
+
+
+class LocateOut(BaseModel):
+    x: float
+    y: float
+    floor: int
+    covariance: list[list[float]]
+    model_id: int
+    algorithm: str
+    reference_point: str | None = None
+    candidates: list[CandidateOut] = []

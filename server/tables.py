@@ -17,6 +17,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 from sqlalchemy.types import TypeDecorator
@@ -149,20 +150,29 @@ class Fingerprint(Base):
 
 
 class Model(Base):
-    """A trained (or training) fingerprint model of a site; the artifact lives apart."""
+    """A trained (or training) fingerprint model of a site; the artifact lives apart.
+
+    At most one model per site is active (a partial unique index enforces it).
+    """
 
     __tablename__ = "models"
+    __table_args__ = (
+        Index("uq_models_one_active", "site_id", unique=True, sqlite_where=text("active"),
+              postgresql_where=text("active")),
+    )
     id: Mapped[int] = mapped_column(primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)
     algorithm: Mapped[str] = mapped_column(String(40))
     params: Mapped[dict[str, Any]] = mapped_column(default=dict)
     use_heading: Mapped[bool] = mapped_column(Boolean, default=False)
     kinds: Mapped[list[Any]] = mapped_column(default=list)
+    include_crowd: Mapped[bool] = mapped_column(Boolean, default=True)
     status: Mapped[str] = mapped_column(String(10), default="queued")
     error: Mapped[str | None] = mapped_column(Text)
     active: Mapped[bool] = mapped_column(Boolean, default=False)
     trained_on: Mapped[int] = mapped_column(Integer, default=0)
     metrics: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    claimed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)  # when a worker took the job
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow, onupdate=utcnow)
 

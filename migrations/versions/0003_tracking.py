@@ -1,7 +1,7 @@
 """tracking sessions: stored batch answers, track estimates, session bookkeeping
 
 Revision ID: 0003_tracking
-Revises: 0001
+Revises: 0002
 Create Date: 2026-11-25 00:20:00
 """
 from alembic import op
@@ -9,7 +9,7 @@ import sqlalchemy as sa
 
 
 revision = '0003_tracking'
-down_revision = '0001'
+down_revision = '0002'
 branch_labels = None
 depends_on = None
 

@@ -149,8 +149,9 @@ class SessionService:
         settings: dict[str, Any] = {}
         if scans:
             beacons = {
-                t.tx_id: Beacon(t.tx_id, t.x, t.y, t.floor, t.tx_power_dbm, t.path_loss_exponent)
+                t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
                 for t in repo.positioned_transmitters(s, row.site_id)
+                if t["y"] is not None
             }
             settings = repo.site_settings(s, row.site_id) or {}
         walls_of = lambda level: repo.floor_walls(s, row.site_id, level)  # noqa: E731

@@ -1,0 +1,27 @@
+"""Locate (device): one scan in, a position with covariance and floor out."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+
+from server.api.deps import Device
+from server.schemas import CandidateOut, LocateIn, LocateOut
+
+router = APIRouter(prefix="/api/v1/sites", tags=["locate"])
+
+
+@router.post(
+    "/{site_id}/locate",
+    response_model=LocateOut,
+    responses={409: {"description": "The site has no ready model."},
+               422: {"description": "No transmitter of the scan is known to the model."}},
+)
+def locate(site_id: int, body: LocateIn, request: Request, _: Device) -> LocateOut:
+    located = request.app.state.positioning.locate(site_id, body.rss, body.heading_deg, body.model_id)
+    fix = located.fix
+    return LocateOut(
+        x=fix.x, y=fix.y, floor=fix.floor, covariance=fix.covariance.tolist(),
+        model_id=located.model_id, algorithm=located.algorithm, reference_point=fix.reference_point,
+        candidates=[CandidateOut(label=c.label, x=c.x, y=c.y, floor=c.floor, probability=c.probability)
+                    for c in fix.candidates],
+    )

@@ -1,0 +1,333 @@
+"""The common shape of every fingerprint model (scikit-learn style).
+
+    model = KNNModel(k=3, kinds=["wifi"], use_heading=True).fit(fingerprint_set)
+    fix = model.locate({"wifi:wap001": -67.0, ...}, heading_deg=90.0)   # -> Fix
+    fixes = model.locate_many(list_of_scans, headings)                 # -> list[Fix]
+    pred = model.predict(rss_matrix, headings)                          # -> Prediction (arrays)
+
+Subclasses implement ``_fit(X, H, data)`` and ``_log_scores(Q, Hq, mask)`` returning
+(nq, n_rp) log-scores over reference points; this class does the rest: transmitter
+filtering by kind, missing-value representation, heading features, the floor-first
+reduction to a `Fix`, spatial restriction around a previous estimate, and
+serialisation (`to_bytes` / `from_bytes`, see artifact.py).
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from server.estimation.types import Candidate, Fix
+
+from .dataset import FingerprintSet, ReferencePoints, tx_kind
+from .features import RssEncoder, heading_features
+from .posterior import Prediction, reduce_posterior
+
+
+class UnknownTransmittersError(ValueError):
+    """The scan contains no transmitter known to the model (API: 422)."""
+
+
+class NotFittedError(RuntimeError):
+    pass
+
+
+@dataclass
+class TrainingData:
+    """What ``_fit`` gets besides the feature matrices."""
+
+    fs: FingerprintSet  # kinds-filtered, empty rows dropped
+    rp: ReferencePoints
+    row_group: np.ndarray  # (n,) group index of each fingerprint
+
+
+def _near_array(near, n: int) -> np.ndarray | None:
+    """``near`` as (n, 3) [x, y, floor or NaN]; accepts a Fix, a tuple or an array."""
+    if near is None:
+        return None
+    if isinstance(near, Fix):
+        near = (near.x, near.y, near.floor)
+    a = np.asarray(near, dtype=float)
+    if a.ndim == 1:
+        a = np.tile(a, (n, 1))
+    if a.shape[1] == 2:
+        a = np.column_stack([a, np.full(len(a), np.nan)])
+    return a
+
+
+class FingerprintModel:
+    """Base class. Common parameters:
+
+    kinds: ["wifi"], ["ble"] or None (= all) — transmitters used, by id prefix.
+    use_heading: add the walking heading as a feature (sin/cos).
+    missing: "powed" (default) or "floor" — representation of not-heard transmitters.
+    floor_dbm: the floor value / weakest reading kept (default −110 dBm).
+    heading_weight: scale of the heading feature against RSS features; None = auto
+        (half the typical RSS distance between scans of one reference point).
+    cov_floor_m: std (m) added to both axes of every covariance; None = auto (half the
+        median spacing of neighbouring reference points, at least 0.5 m).
+    n_candidates: how many candidates a Fix lists.
+    """
+
+    name = "base"
+    needs_fingerprints = True
+
+    def __init__(
+        self,
+        *,
+        kinds: Sequence[str] | None = None,
+        use_heading: bool = False,
+        missing: str = "powed",
+        floor_dbm: float = -110.0,
+        heading_weight: float | None = None,
+        cov_floor_m: float | None = None,
+        n_candidates: int = 5,
+    ):
+        self.kinds = None if kinds is None else list(kinds)
+        self.use_heading = bool(use_heading)
+        self.missing = missing
+        self.floor_dbm = float(floor_dbm)
+        self.heading_weight = heading_weight
+        self.cov_floor_m = cov_floor_m
+        self.n_candidates = int(n_candidates)
+        RssEncoder(missing, floor_dbm)  # validate early
+
+    # ---- parameters --------------------------------------------------------------
+    @classmethod
+    def _param_names(cls) -> list[str]:
+        names = []
+        for klass in cls.__mro__:
+            if "__init__" not in vars(klass) or klass is object:
+                continue
+            for p in inspect.signature(klass.__init__).parameters.values():
+                if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name not in names:
+                    names.append(p.name)
+        return names
+
+    def get_params(self) -> dict:
+        return {n: getattr(self, n) for n in self._param_names()}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+    # ---- fitting -----------------------------------------------------------------
+    def fit(self, fs: FingerprintSet) -> FingerprintModel:
+        t0 = time.perf_counter()
+        fs = fs.select_kinds(self.kinds).drop_empty()
+        if len(fs) == 0 and self.needs_fingerprints:
+            raise ValueError("no fingerprint hears any transmitter of the selected kinds")
+        self.tx_ids_ = list(fs.tx_ids)
+        self.tx_index_ = {t: j for j, t in enumerate(self.tx_ids_)}
+        self.encoder_ = RssEncoder(self.missing, self.floor_dbm)
+        rp = fs.reference_points()
+        self.rp_ = rp
+        gkeys = sorted({(int(b), int(f)) for b, f in zip(rp.building, rp.floor)})
+        gindex = {k: i for i, k in enumerate(gkeys)}
+        self.group_building_ = np.array([k[0] for k in gkeys], dtype=int)
+        self.group_floor_ = np.array([k[1] for k in gkeys], dtype=int)
+        self.rp_group_ = np.array([gindex[(int(b), int(f))] for b, f in zip(rp.building, rp.floor)], dtype=int)
+        self.rp_xy_ = rp.xy
+        self.rp_key_index_ = {k: i for i, k in enumerate(rp.keys)}
+        X = self.encoder_.transform(fs.rss)
+        H = heading_features(fs.heading_deg) if self.use_heading else None
+        self.cov_floor_m_ = self.cov_floor_m if self.cov_floor_m is not None else self._auto_cov_floor()
+        if self.use_heading:
+            self.heading_weight_ = (
+                float(self.heading_weight) if self.heading_weight is not None
+                else self._auto_heading_weight(X, rp.row_rp)
+            )
+        else:
+            self.heading_weight_ = 0.0
+        self.n_fingerprints_ = len(fs)
+        data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
+        self._fit(X, H, data)
+        self.fit_time_s_ = time.perf_counter() - t0
+        return self
+
+    def _fit(self, X: np.ndarray, H: np.ndarray | None, data: TrainingData) -> None:
+        raise NotImplementedError
+
+    def _auto_cov_floor(self) -> float:
+        spacings = []
+        for g in range(len(self.group_floor_)):
+            xy = self.rp_xy_[self.rp_group_ == g]
+            if len(xy) < 2:
+                continue
+            d = np.sqrt(((xy[:, None, :] - xy[None, :, :]) ** 2).sum(-1)) if len(xy) <= 2000 else None
+            if d is None:
+                continue
+            np.fill_diagonal(d, np.inf)
+            spacings.append(d.min(axis=1))
+        if not spacings:
+            return 1.0
+        return max(0.5, 0.5 * float(np.median(np.concatenate(spacings))))
+
+    @staticmethod
+    def _auto_heading_weight(X: np.ndarray, row_rp: np.ndarray) -> float:
+        n_rp = row_rp.max() + 1 if len(row_rp) else 0
+        if n_rp == 0:
+            return 0.0
+        counts = np.bincount(row_rp, minlength=n_rp)
+        mean = np.zeros((n_rp, X.shape[1]))
+        np.add.at(mean, row_rp, X)
+        mean /= np.maximum(counts, 1)[:, None]
+        d2 = ((X - mean[row_rp]) ** 2).sum(axis=1)
+        d2 = d2[counts[row_rp] > 1]
+        typical = float(np.sqrt(np.median(d2))) if len(d2) else 0.1
+        return 0.5 * max(typical, 1e-3)
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "tx_ids_"):
+            raise NotFittedError(f"{type(self).__name__} is not fitted")
+
+    # ---- queries -----------------------------------------------------------------
+    def scan_matrix(self, scans: Sequence[Mapping[str, float]]) -> np.ndarray:
+        """Scans as ``{tx_id: dBm}`` dicts → (n, m) matrix in this model's column order.
+        Transmitters unknown to the model (or of other kinds) are ignored."""
+        self._check_fitted()
+        R = np.full((len(scans), len(self.tx_ids_)), np.nan)
+        idx = self.tx_index_
+        for i, s in enumerate(scans):
+            for tx, v in s.items():
+                j = idx.get(tx)
+                if j is not None and v is not None:
+                    R[i, j] = float(v)
+        return R
+
+    def known_transmitters(self, rss: Mapping[str, float]) -> list[str]:
+        self._check_fitted()
+        return [t for t in rss if t in self.tx_index_]
+
+    def _as_matrix(self, rss) -> np.ndarray:
+        if isinstance(rss, np.ndarray):
+            R = np.atleast_2d(np.asarray(rss, dtype=float))
+            if R.shape[1] != len(self.tx_ids_):
+                raise ValueError(f"RSS matrix has {R.shape[1]} columns, model has {len(self.tx_ids_)} transmitters")
+            return R
+        if isinstance(rss, FingerprintSet):
+            return rss.aligned_rss(self.tx_ids_)
+        return self.scan_matrix(list(rss))
+
+    def _headings(self, heading_deg, n: int) -> np.ndarray | None:
+        if not self.use_heading:
+            return None
+        if heading_deg is None:
+            return np.zeros((n, 2), dtype=np.float32)
+        h = np.atleast_1d(np.asarray([np.nan if v is None else v for v in np.atleast_1d(heading_deg)], dtype=float))
+        if len(h) == 1 and n != 1:
+            h = np.repeat(h, n)
+        return heading_features(h)
+
+    def _near_mask(self, near, radius_m, n: int) -> np.ndarray | None:
+        a = _near_array(near, n)
+        if a is None or radius_m is None:
+            return None
+        d2 = ((self.rp_xy_[None, :, :] - a[:, None, :2]) ** 2).sum(-1)
+        mask = d2 <= float(radius_m) ** 2
+        has_floor = ~np.isnan(a[:, 2])
+        if has_floor.any():
+            rp_floor = self.group_floor_[self.rp_group_]
+            mask[has_floor] &= rp_floor[None, :] == a[has_floor, 2][:, None]
+        mask[~mask.any(axis=1)] = True  # nothing near: no restriction for that query
+        return mask
+
+    def predict(self, rss, heading_deg=None, *, near=None, radius_m: float | None = None,
+                chunk: int = 256) -> Prediction:
+        """Vectorised estimate for many scans.
+
+        rss: (n, m) matrix in ``tx_ids_`` order (NaN = not heard), a FingerprintSet, or
+        a list of ``{tx_id: dBm}``. heading_deg: None, a scalar or (n,) (NaN/None =
+        unknown). near/radius_m: restrict to reference points within ``radius_m`` of
+        ``near`` = (x, y[, floor]) or a previous Fix (spatial filtering when tracking).
+        """
+        self._check_fitted()
+        R = self._as_matrix(rss)
+        n = R.shape[0]
+        Q = self.encoder_.transform(R)
+        Hq = self._headings(heading_deg, n)
+        mask = self._near_mask(near, radius_m, n)
+        parts = []
+        for s in range(0, n, chunk):
+            sl = slice(s, s + chunk)
+            m = None if mask is None else mask[sl]
+            logs = self._log_scores(Q[sl], None if Hq is None else Hq[sl], m)
+            if m is not None:
+                masked = np.where(m, logs, -np.inf)
+                dead = ~np.isfinite(masked).any(axis=1)  # restriction left nothing: ignore it
+                logs = np.where(dead[:, None], logs, masked)
+            parts.append(self._reduce(logs))
+        return _concat_predictions(parts)
+
+    def _reduce(self, logs: np.ndarray) -> Prediction:
+        return reduce_posterior(
+            logs, self.rp_xy_, self.rp_group_, self.group_floor_, self.group_building_,
+            self.cov_floor_m_, self.n_candidates,
+        )
+
+    def _log_scores(self, Q: np.ndarray, Hq: np.ndarray | None, mask: np.ndarray | None) -> np.ndarray:
+        raise NotImplementedError
+
+    def fixes(self, pred: Prediction) -> list[Fix]:
+        labels = self.rp_.labels
+        out = []
+        for i in range(len(pred)):
+            cands = [
+                Candidate(label=labels[r], x=float(self.rp_xy_[r, 0]), y=float(self.rp_xy_[r, 1]),
+                          floor=int(self.rp_.floor[r]), probability=float(p))
+                for r, p in zip(pred.top_rp[i], pred.top_p[i]) if p > 0 and r >= 0
+            ]
+            best = int(pred.best_rp[i])
+            out.append(Fix(
+                x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
+                covariance=pred.covariance[i].copy(),
+                reference_point=labels[best] if best >= 0 else None,
+                candidates=cands,
+            ))
+        return out
+
+    def locate(self, rss: Mapping[str, float], heading_deg: float | None = None, *,
+               near=None, radius_m: float | None = None) -> Fix:
+        """One scan ``{tx_id: dBm}`` → Fix. Raises UnknownTransmittersError when no
+        transmitter of the scan is known to the model."""
+        self._check_fitted()
+        if not self.known_transmitters(rss):
+            raise UnknownTransmittersError("no transmitter in the scan is known to the model")
+        pred = self.predict(self.scan_matrix([rss]), heading_deg, near=near, radius_m=radius_m)
+        return self.fixes(pred)[0]
+
+    def locate_many(self, rss, heading_deg=None, *, near=None, radius_m: float | None = None) -> list[Fix]:
+        """Many scans (list of dicts, matrix or FingerprintSet) → list of Fix."""
+        return self.fixes(self.predict(rss, heading_deg, near=near, radius_m=radius_m))
+
+    # ---- artifacts -----------------------------------------------------------------
+    def to_bytes(self) -> bytes:
+        from .artifact import to_bytes
+
+        return to_bytes(self)
+
+    @staticmethod
+    def from_bytes(blob: bytes) -> FingerprintModel:
+        from .artifact import from_bytes
+
+        return from_bytes(blob)
+
+
+def _concat_predictions(parts: list[Prediction]) -> Prediction:
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        z = np.zeros(0)
+        return Prediction(z, z, z.astype(int), z.astype(int), np.zeros((0, 2, 2)), z.astype(int),
+                          np.zeros((0, 0), int), np.zeros((0, 0)))
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+    return Prediction(cat("x"), cat("y"), cat("floor"), cat("building"), cat("covariance"),
+                      cat("best_rp"), cat("top_rp"), cat("top_p"))
+
+
+def filter_kinds(tx_ids: Sequence[str], kinds: Sequence[str] | None) -> list[str]:
+    return list(tx_ids) if not kinds else [t for t in tx_ids if tx_kind(t) in kinds]

@@ -1,0 +1,290 @@
+"""Training data for fingerprint models: `FingerprintSet` and its reference points.
+
+A fingerprint is one RSS scan taken at a known position. Rows with the same
+``(building, floor, label)`` — or, without a label, the same ``(building, floor, x, y)``
+— are one *reference point* (RP), as API.md defines for surveys. ``building`` is an
+optional extra (UJIIndoorLoc has it; API rows do not, so it defaults to 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+KINDS = ("wifi", "ble")
+
+
+def tx_kind(tx_id: str) -> str:
+    """``"wifi"`` or ``"ble"`` from a transmitter id such as ``wifi:wap001``."""
+    return tx_id.split(":", 1)[0]
+
+
+def _obj_array(values, n: int) -> np.ndarray:
+    out = np.empty(n, dtype=object)
+    if values is not None:
+        out[:] = list(values)
+    return out
+
+
+@dataclass(frozen=True)
+class ReferencePoints:
+    """The reference points of a `FingerprintSet`, one entry per RP."""
+
+    keys: list[tuple]  # hashable identity, comparable across sets
+    labels: list[str]  # display label (the survey label, or floor/x/y)
+    x: np.ndarray
+    y: np.ndarray
+    floor: np.ndarray
+    building: np.ndarray
+    row_rp: np.ndarray  # for each fingerprint row, the index of its RP
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.column_stack([self.x, self.y])
+
+
+def rp_key(building: int, floor: int, label, x: float, y: float) -> tuple:
+    if label is not None and label != "":
+        return (int(building), int(floor), "L", str(label))
+    return (int(building), int(floor), "P", round(float(x), 3), round(float(y), 3))
+
+
+def rp_display_label(key: tuple) -> str:
+    b, f, kind = key[0], key[1], key[2]
+    if kind == "L":
+        return key[3]
+    prefix = f"b{b}:" if b else ""
+    return f"{prefix}f{f}:{key[3]:.2f},{key[4]:.2f}"
+
+
+@dataclass
+class FingerprintSet:
+    """Fingerprints as numpy arrays (one row each).
+
+    rss: (n, m) dBm, NaN = not heard; tx_ids: the m transmitter ids (``wifi:...``,
+    ``ble:...``); x, y: metres; floor: int; heading_deg: NaN when unknown;
+    label: reference-point key (None when rows are grouped by position);
+    building: int (0 unless the data set has buildings); user/device: optional
+    groups for splitting; t: optional times.
+    """
+
+    rss: np.ndarray
+    tx_ids: list[str]
+    x: np.ndarray
+    y: np.ndarray
+    floor: np.ndarray
+    heading_deg: np.ndarray | None = None
+    label: np.ndarray | None = None
+    building: np.ndarray | None = None
+    user: np.ndarray | None = None
+    device: np.ndarray | None = None
+    t: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.rss = np.asarray(self.rss, dtype=float).reshape(-1, len(self.tx_ids))
+        n = self.rss.shape[0]
+        self.tx_ids = [str(t) for t in self.tx_ids]
+        if len(set(self.tx_ids)) != len(self.tx_ids):
+            raise ValueError("duplicate transmitter ids")
+        self.x = np.asarray(self.x, dtype=float).reshape(n)
+        self.y = np.asarray(self.y, dtype=float).reshape(n)
+        self.floor = np.asarray(self.floor).astype(int).reshape(n)
+        self.heading_deg = (
+            np.full(n, np.nan) if self.heading_deg is None
+            else np.asarray(self.heading_deg, dtype=float).reshape(n)
+        )
+        self.label = _obj_array(self.label, n)
+        self.building = (
+            np.zeros(n, dtype=int) if self.building is None
+            else np.asarray(self.building).astype(int).reshape(n)
+        )
+        if self.user is not None:
+            self.user = _obj_array(self.user, n)
+        if self.device is not None:
+            self.device = _obj_array(self.device, n)
+        if self.t is not None:
+            self.t = np.asarray(self.t, dtype=float).reshape(n)
+
+    # ---- construction -------------------------------------------------------------
+    @classmethod
+    def from_rows(
+        cls, rows: Iterable[Mapping], tx_ids: Sequence[str] | None = None
+    ) -> FingerprintSet:
+        """Build from row dicts as the server stores them:
+        ``{x, y, floor, rss: {tx_id: dBm}, heading_deg?, label?, device?, user?, t?,
+        building?}``. Transmitters are the sorted union of the rows' ids unless
+        ``tx_ids`` is given (ids outside it are dropped)."""
+        rows = list(rows)
+        if tx_ids is None:
+            tx_ids = sorted({tx for r in rows for tx in r["rss"]})
+        tx_ids = list(tx_ids)
+        col = {tx: j for j, tx in enumerate(tx_ids)}
+        rss = np.full((len(rows), len(tx_ids)), np.nan)
+        for i, r in enumerate(rows):
+            for tx, v in r["rss"].items():
+                j = col.get(tx)
+                if j is not None and v is not None:
+                    rss[i, j] = float(v)
+
+        def opt(key, default=None):
+            vals = [r.get(key) for r in rows]
+            return None if all(v is None for v in vals) else [default if v is None else v for v in vals]
+
+        heading = [np.nan if r.get("heading_deg") is None else float(r["heading_deg"]) for r in rows]
+        labels = [r.get("label") or None for r in rows]
+        return cls(
+            rss=rss,
+            tx_ids=tx_ids,
+            x=[float(r["x"]) for r in rows],
+            y=[float(r["y"]) for r in rows],
+            floor=[int(r["floor"]) for r in rows],
+            heading_deg=heading,
+            label=labels,
+            building=opt("building", 0),
+            user=opt("user"),
+            device=opt("device"),
+            t=opt("t", np.nan),
+        )
+
+    def to_rows(self) -> list[dict]:
+        """Inverse of `from_rows` (RSS maps hold heard transmitters only)."""
+        out = []
+        for i in range(len(self)):
+            heard = ~np.isnan(self.rss[i])
+            row = {
+                "x": float(self.x[i]), "y": float(self.y[i]), "floor": int(self.floor[i]),
+                "rss": {self.tx_ids[j]: float(self.rss[i, j]) for j in np.flatnonzero(heard)},
+            }
+            if not np.isnan(self.heading_deg[i]):
+                row["heading_deg"] = float(self.heading_deg[i])
+            if self.label[i] is not None:
+                row["label"] = self.label[i]
+            if self.building[i]:
+                row["building"] = int(self.building[i])
+            if self.device is not None:
+                row["device"] = self.device[i]
+            if self.user is not None:
+                row["user"] = self.user[i]
+            out.append(row)
+        return out
+
+    # ---- selection ----------------------------------------------------------------
+    def __len__(self) -> int:
+        return self.rss.shape[0]
+
+    def subset(self, rows) -> FingerprintSet:
+        """Rows selected by an index array or boolean mask."""
+        idx = np.asarray(rows)
+        if idx.dtype == bool:
+            idx = np.flatnonzero(idx)
+        pick = lambda a: None if a is None else a[idx]  # noqa: E731
+        return replace(
+            self, rss=self.rss[idx], x=self.x[idx], y=self.y[idx], floor=self.floor[idx],
+            heading_deg=self.heading_deg[idx], label=self.label[idx],
+            building=self.building[idx], user=pick(self.user), device=pick(self.device),
+            t=pick(self.t), meta=dict(self.meta),
+        )
+
+    def select_transmitters(self, tx_ids: Sequence[str]) -> FingerprintSet:
+        """Columns reordered to ``tx_ids``; ids this set lacks become all-NaN columns."""
+        return replace(self, rss=self.aligned_rss(tx_ids), tx_ids=list(tx_ids), meta=dict(self.meta))
+
+    def select_kinds(self, kinds: Sequence[str] | None) -> FingerprintSet:
+        """Keep only transmitters whose id starts with one of ``kinds`` (e.g. ["ble"])."""
+        if not kinds:
+            return self
+        kinds = tuple(kinds)
+        bad = set(kinds) - set(KINDS)
+        if bad:
+            raise ValueError(f"unknown transmitter kinds {sorted(bad)}; use {KINDS}")
+        keep = [t for t in self.tx_ids if tx_kind(t) in kinds]
+        return self.select_transmitters(keep)
+
+    def heard_mask(self) -> np.ndarray:
+        return ~np.all(np.isnan(self.rss), axis=1)
+
+    def drop_empty(self) -> FingerprintSet:
+        """Rows that hear at least one transmitter."""
+        m = self.heard_mask()
+        return self if m.all() else self.subset(m)
+
+    def aligned_rss(self, tx_ids: Sequence[str]) -> np.ndarray:
+        """The RSS matrix with columns in the order of ``tx_ids`` (NaN for unknown)."""
+        col = {t: j for j, t in enumerate(self.tx_ids)}
+        out = np.full((len(self), len(tx_ids)), np.nan)
+        src = [(k, col[t]) for k, t in enumerate(tx_ids) if t in col]
+        if src:
+            dst, s = zip(*src)
+            out[:, list(dst)] = self.rss[:, list(s)]
+        return out
+
+    def scans(self) -> list[dict[str, float]]:
+        """One ``{tx_id: dBm}`` dict per row (heard transmitters only)."""
+        return [
+            {self.tx_ids[j]: float(self.rss[i, j]) for j in np.flatnonzero(~np.isnan(self.rss[i]))}
+            for i in range(len(self))
+        ]
+
+    # ---- reference points --------------------------------------------------------------
+    def rp_keys(self) -> list[tuple]:
+        return [
+            rp_key(b, f, lab, x, y)
+            for b, f, lab, x, y in zip(self.building, self.floor, self.label, self.x, self.y)
+        ]
+
+    def reference_points(self) -> ReferencePoints:
+        keys_per_row = self.rp_keys()
+        index: dict[tuple, int] = {}
+        row_rp = np.empty(len(self), dtype=int)
+        for i, k in enumerate(keys_per_row):
+            row_rp[i] = index.setdefault(k, len(index))
+        keys = list(index)
+        n_rp = len(keys)
+        counts = np.bincount(row_rp, minlength=n_rp)
+        x = np.bincount(row_rp, self.x, n_rp) / np.maximum(counts, 1)
+        y = np.bincount(row_rp, self.y, n_rp) / np.maximum(counts, 1)
+        return ReferencePoints(
+            keys=keys,
+            labels=[rp_display_label(k) for k in keys],
+            x=x, y=y,
+            floor=np.array([k[1] for k in keys], dtype=int),
+            building=np.array([k[0] for k in keys], dtype=int),
+            row_rp=row_rp,
+        )
+
+
+# ---- splitting ------------------------------------------------------------------------
+def random_split(fs: FingerprintSet, test_fraction: float = 0.2, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(len(fs))
+    n_test = max(1, int(round(test_fraction * len(fs))))
+    return fs.subset(np.sort(perm[n_test:])), fs.subset(np.sort(perm[:n_test]))
+
+
+def group_split(fs: FingerprintSet, by: str, test_fraction: float = 0.2, seed: int = 0):
+    """Hold out whole groups (``by`` = "user" or "device") until about
+    ``test_fraction`` of the rows are held out. Returns (train, test, held_out_groups)."""
+    groups = getattr(fs, by)
+    if groups is None:
+        raise ValueError(f"this set has no {by!r} column to split by")
+    names, inv, counts = np.unique(groups.astype(str), return_inverse=True, return_counts=True)
+    order = np.random.default_rng(seed).permutation(len(names))
+    held, n_held = [], 0
+    target = test_fraction * len(fs)
+    for g in order:
+        if n_held >= target:
+            break
+        if n_held + counts[g] > 1.6 * target and n_held > 0:
+            continue  # skip a group that would overshoot badly
+        held.append(g)
+        n_held += counts[g]
+    if len(held) == len(names):
+        held = held[:-1]
+    test_mask = np.isin(inv, held)
+    return fs.subset(~test_mask), fs.subset(test_mask), sorted(names[held].tolist())

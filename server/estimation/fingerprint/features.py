@@ -1,0 +1,56 @@
+"""RSS and heading feature representations.
+
+Missing transmitters are handled in one of two deliberate ways (``missing=``):
+
+- ``"floor"``: a transmitter not heard is given the floor value ``floor_dbm``
+  (default −110 dBm); features are ``(rss − floor) / (−floor)`` in [0, 1], linear in dB.
+- ``"powed"``: the exponential representation of Torres-Sospedra et al. (2015):
+  ``((rss − floor) / (−floor)) ** β`` with β = e. Weak readings are squeezed towards
+  the "not heard" value 0, so a transmitter heard at −100 dBm by one phone and not at
+  all by another costs little, while strong readings keep their spread.
+
+Both map "not heard" to 0 (so fingerprint matrices are sparse). Readings below the
+floor are clipped to it (treated as not heard). ``powed`` is the default: it
+measured better on UJIIndoorLoc (docs/fingerprint-results.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+MISSING_MODES = ("powed", "floor")
+
+
+@dataclass(frozen=True)
+class RssEncoder:
+    missing: str = "powed"
+    floor_dbm: float = -110.0
+    beta: float = math.e
+
+    def __post_init__(self) -> None:
+        if self.missing not in MISSING_MODES:
+            raise ValueError(f"missing must be one of {MISSING_MODES}, not {self.missing!r}")
+        if not self.floor_dbm < 0:
+            raise ValueError("floor_dbm must be negative")
+
+    def transform(self, rss: np.ndarray) -> np.ndarray:
+        """(n, m) dBm with NaN = not heard → (n, m) float32 features, 0 = not heard."""
+        rss = np.asarray(rss, dtype=float)
+        v = (np.clip(rss, self.floor_dbm, 0.0) - self.floor_dbm) / (-self.floor_dbm)
+        v = np.where(np.isnan(v), 0.0, v)
+        if self.missing == "powed":
+            v = v ** self.beta
+        return v.astype(np.float32)
+
+
+def heading_features(heading_deg) -> np.ndarray:
+    """(n,) degrees → (n, 2) ``[sin h, cos h]``; unknown heading (NaN/None) → ``[0, 0]``,
+    which is equally far from every heading, so it neither helps nor hurts a match."""
+    h = np.asarray([np.nan if v is None else v for v in np.atleast_1d(heading_deg)], dtype=float)
+    r = np.radians(h)
+    out = np.column_stack([np.sin(r), np.cos(r)])
+    out[np.isnan(h)] = 0.0
+    return out.astype(np.float32)

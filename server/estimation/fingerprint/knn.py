@@ -1,0 +1,68 @@
+"""K nearest neighbours in RSS space (over individual fingerprints).
+
+Floor first: the ``floor_k`` nearest fingerprints vote (weighted) for a
+(building, floor); then the ``k`` nearest fingerprints *of that floor* give the
+posterior over reference points (weights uniform or 1/distance).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import FingerprintModel, TrainingData
+from .distance import SquaredDistance
+
+WEIGHTS = ("uniform", "distance")
+
+
+def _top_k(d2: np.ndarray, k: int) -> np.ndarray:
+    k = min(k, d2.shape[1])
+    idx = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < d2.shape[1] else np.tile(np.arange(d2.shape[1]), (len(d2), 1))
+    return idx
+
+
+class KNNModel(FingerprintModel):
+    """k: neighbours for the position (default 3); weights: "distance" (1/d) or
+    "uniform"; floor_k: neighbours that vote for the floor (None = max(k, 10))."""
+
+    name = "knn"
+
+    def __init__(self, k: int = 3, weights: str = "distance", floor_k: int | None = None, **common):
+        super().__init__(**common)
+        if weights not in WEIGHTS:
+            raise ValueError(f"weights must be one of {WEIGHTS}")
+        self.k = int(k)
+        self.weights = weights
+        self.floor_k = floor_k
+
+    def _fit(self, X, H, data: TrainingData) -> None:
+        self.dist_ = SquaredDistance(X, H, self.heading_weight_)
+        self.row_rp_ = data.rp.row_rp
+        self.row_group_ = data.row_group
+
+    def _weights(self, d2: np.ndarray) -> np.ndarray:
+        if self.weights == "uniform":
+            return np.where(np.isfinite(d2), 1.0, 0.0)
+        return np.where(np.isfinite(d2), 1.0 / (np.sqrt(d2) + 1e-6), 0.0)
+
+    def _log_scores(self, Q, Hq, mask):
+        d2 = self.dist_(Q, Hq)
+        if mask is not None:
+            d2 = np.where(mask[:, self.row_rp_], d2, np.inf)
+        n = len(d2)
+        rows = np.arange(n)[:, None]
+        n_groups = len(self.group_floor_)
+        if n_groups > 1:
+            fk = self.floor_k if self.floor_k is not None else max(self.k, 10)
+            idx = _top_k(d2, fk)
+            w = self._weights(d2[rows, idx])
+            votes = np.zeros((n, n_groups))
+            np.add.at(votes, (np.broadcast_to(rows, idx.shape), self.row_group_[idx]), w)
+            g = np.argmax(votes, axis=1)
+            d2 = np.where(self.row_group_[None, :] == g[:, None], d2, np.inf)
+        idx = _top_k(d2, self.k)
+        w = self._weights(d2[rows, idx])
+        scores = np.zeros((n, len(self.rp_xy_)))
+        np.add.at(scores, (np.broadcast_to(rows, idx.shape), self.row_rp_[idx]), w)
+        with np.errstate(divide="ignore"):
+            return np.log(scores)

@@ -1,0 +1,91 @@
+"""From log-scores over reference points to a fix: floor first, then position.
+
+Every model produces, per query, log-scores over the reference points (RPs) it was
+trained on (−inf = impossible). `reduce_posterior`:
+
+1. turns them into a posterior, sums it per (building, floor) group and picks the
+   group with the most mass (the floor "vote");
+2. keeps only the RPs of that group and renormalises — the position can never come
+   from another floor;
+3. reduces that mixture of RPs to its first two moments (mean, 2×2 covariance) and
+   adds ``cov_floor_m² · I`` so the covariance is usable as a tracker's R even when
+   the posterior is a single RP;
+4. reports the best RP and the top candidates (probabilities within the floor).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def softmax_rows(logs: np.ndarray) -> np.ndarray:
+    m = np.max(logs, axis=1, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    p = np.exp(logs - m)
+    s = p.sum(axis=1, keepdims=True)
+    return np.divide(p, s, out=np.zeros_like(p), where=s > 0)
+
+
+@dataclass
+class Prediction:
+    """Vectorised answer for n queries (arrays, no Python objects per query)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    floor: np.ndarray
+    building: np.ndarray
+    covariance: np.ndarray  # (n, 2, 2)
+    best_rp: np.ndarray  # (n,) RP index
+    top_rp: np.ndarray  # (n, c) RP indices, best first
+    top_p: np.ndarray  # (n, c) probabilities
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.column_stack([self.x, self.y])
+
+
+def reduce_posterior(
+    logs: np.ndarray,
+    rp_xy: np.ndarray,
+    rp_group: np.ndarray,
+    group_floor: np.ndarray,
+    group_building: np.ndarray,
+    cov_floor_m: float,
+    n_candidates: int = 5,
+) -> Prediction:
+    n, n_rp = logs.shape
+    n_groups = len(group_floor)
+    P = softmax_rows(logs)
+    mass = np.zeros((n, n_groups))
+    for g in range(n_groups):  # groups are few (floors × buildings)
+        mass[:, g] = P[:, rp_group == g].sum(axis=1)
+    g_best = np.argmax(mass, axis=1)
+    on_floor = rp_group[None, :] == g_best[:, None]
+    P = np.where(on_floor, P, 0.0)
+    s = P.sum(axis=1, keepdims=True)
+    empty = s[:, 0] <= 0
+    if empty.any():  # no mass on the chosen group: uniform over its RPs
+        P[empty] = on_floor[empty].astype(float)
+        s = P.sum(axis=1, keepdims=True)
+    P /= s
+    mean = P @ rp_xy
+    d = rp_xy[None, :, :] - mean[:, None, :]
+    cov = np.einsum("nr,nri,nrj->nij", P, d, d)
+    cov[:, 0, 0] += cov_floor_m**2
+    cov[:, 1, 1] += cov_floor_m**2
+    c = min(n_candidates, n_rp)
+    top = np.argpartition(-P, c - 1, axis=1)[:, :c] if c < n_rp else np.tile(np.arange(n_rp), (n, 1))
+    top_p = np.take_along_axis(P, top, axis=1)
+    order = np.argsort(-top_p, axis=1, kind="stable")
+    top = np.take_along_axis(top, order, axis=1)
+    top_p = np.take_along_axis(top_p, order, axis=1)
+    return Prediction(
+        x=mean[:, 0], y=mean[:, 1],
+        floor=group_floor[g_best], building=group_building[g_best],
+        covariance=cov, best_rp=top[:, 0], top_rp=top, top_p=top_p,
+    )

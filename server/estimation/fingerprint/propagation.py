@@ -1,0 +1,261 @@
+"""Propagation (path-loss) model: for sites with transmitter positions and few or no
+fingerprints.
+
+Log-distance path loss ``RSS = R0 − 10·γ·log10(d)`` (d in metres, ≥ 1 m; R0 = RSS at
+1 m). Per transmitter, R0 and γ are
+
+- taken from the site's Transmitter records (``tx_power_dbm``, ``path_loss_exponent``)
+  when given, else
+- fitted by least squares on the survey fingerprints that heard it (distance from the
+  transmitter's known position, or from a position estimated as the power-weighted
+  centroid of its strongest readings), else
+- a pooled fit over all transmitters, else the defaults.
+
+Locating one scan: floor = power-weighted vote of the strongest heard transmitters'
+floors; ranges from the inverted path loss (horizontal, after removing the floor
+height difference); then least-squares multilateration (relative range residuals,
+soft-L1 loss) or the weighted path-loss centroid (weights 1/d). With fingerprints the
+estimate is turned into a posterior over the reference points of that floor like every
+other model; without, the fix is the estimate with its least-squares covariance.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from server.estimation.types import Fix
+
+from .base import FingerprintModel, TrainingData, _concat_predictions
+from .dataset import FingerprintSet, tx_kind
+from .posterior import Prediction
+
+METHODS = ("multilateration", "centroid")
+
+
+# ---- building blocks (usable on their own) ------------------------------------------------
+def fit_path_loss(distance_m, rss_dbm, min_distance_m: float = 1.0,
+                  gamma_bounds=(1.0, 6.0)) -> tuple[float, float]:
+    """Least-squares (R0, γ) of ``rss = R0 − 10·γ·log10(d)``. Needs ≥ 2 distinct
+    distances; γ is clipped to ``gamma_bounds`` (R0 refitted with γ fixed)."""
+    d = np.maximum(np.asarray(distance_m, dtype=float), min_distance_m)
+    r = np.asarray(rss_dbm, dtype=float)
+    ok = np.isfinite(d) & np.isfinite(r)
+    d, r = d[ok], r[ok]
+    L = -10.0 * np.log10(d)
+    if len(r) < 2 or np.ptp(L) < 1e-6:
+        raise ValueError("need readings at two or more distinct distances")
+    A = np.column_stack([np.ones_like(L), L])
+    (r0, g), *_ = np.linalg.lstsq(A, r, rcond=None)
+    if not gamma_bounds[0] <= g <= gamma_bounds[1]:
+        g = float(np.clip(g, *gamma_bounds))
+        r0 = float(np.mean(r - g * L))
+    return float(r0), float(g)
+
+
+def rss_to_distance(rss_dbm, r0, gamma) -> np.ndarray:
+    return 10.0 ** ((np.asarray(r0) - np.asarray(rss_dbm)) / (10.0 * np.asarray(gamma)))
+
+
+def weighted_centroid(anchors_xy: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
+    """Weighted path-loss centroid, weights 1/d."""
+    w = 1.0 / np.maximum(np.asarray(ranges_m, dtype=float), 0.1)
+    return (np.asarray(anchors_xy) * w[:, None]).sum(0) / w.sum()
+
+
+def multilaterate(anchors_xy: np.ndarray, ranges_m: np.ndarray, x0=None,
+                  min_rel_error: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares position from ranges to anchors (relative residuals
+    ``(|p − a| − r)/r``, soft-L1). Returns (xy, 2×2 covariance in m²). Fewer than three
+    anchors: the weighted centroid with a covariance from the ranges."""
+    A = np.asarray(anchors_xy, dtype=float)
+    r = np.maximum(np.asarray(ranges_m, dtype=float), 0.5)
+    start = weighted_centroid(A, r) if x0 is None else np.asarray(x0, dtype=float)
+    if len(A) < 3:
+        s = float(np.min(r))
+        return start, np.eye(2) * s**2
+
+    def resid(p):
+        return (np.hypot(*(p - A).T) - r) / r
+
+    sol = least_squares(resid, start, loss="soft_l1", f_scale=0.3)
+    J = sol.jac
+    s2 = max(float(np.sum(sol.fun**2)) / max(len(A) - 2, 1), min_rel_error**2)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
+        cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
+    return sol.x, cov
+
+
+# ---- the model --------------------------------------------------------------------------
+class PropagationModel(FingerprintModel):
+    """transmitters: API Transmitter dicts ``{id, floor?, x?, y?, tx_power_dbm?,
+    path_loss_exponent?}`` (``building?`` accepted too). method: "multilateration" or
+    "centroid". floor_height_m: vertical distance per floor. max_anchors: strongest
+    transmitters used per scan."""
+
+    name = "propagation"
+    needs_fingerprints = False
+
+    def __init__(self, transmitters: Sequence[Mapping] | None = None, method: str = "multilateration",
+                 floor_height_m: float = 4.0, default_r0: float = -45.0, default_gamma: float = 2.5,
+                 max_anchors: int = 8, **common):
+        super().__init__(**common)
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}")
+        self.transmitters = None if transmitters is None else [dict(t) for t in transmitters]
+        self.method = method
+        self.floor_height_m = float(floor_height_m)
+        self.default_r0 = float(default_r0)
+        self.default_gamma = float(default_gamma)
+        self.max_anchors = int(max_anchors)
+
+    def fit(self, fs: FingerprintSet | None = None) -> PropagationModel:
+        known = [t for t in (self.transmitters or []) if not self.kinds or tx_kind(t["id"]) in self.kinds]
+        if fs is None:
+            fs = FingerprintSet(rss=np.zeros((0, len(known))), tx_ids=[t["id"] for t in known],
+                                x=[], y=[], floor=[])
+        missing_cols = [t["id"] for t in known if t["id"] not in fs.tx_ids]
+        if missing_cols:
+            fs = fs.select_transmitters(list(fs.tx_ids) + missing_cols)
+        return super().fit(fs)
+
+    def _fit(self, X, H, data: TrainingData) -> None:
+        fs = data.fs
+        m = len(self.tx_ids_)
+        info = {t["id"]: t for t in (self.transmitters or [])}
+        pos = np.full((m, 2), np.nan)
+        floor = np.zeros(m, dtype=int)
+        building = np.zeros(m, dtype=int)
+        r0 = np.full(m, np.nan)
+        gamma = np.full(m, np.nan)
+        for j, tx in enumerate(self.tx_ids_):
+            t = info.get(tx, {})
+            if t.get("x") is not None and t.get("y") is not None:
+                pos[j] = (float(t["x"]), float(t["y"]))
+                floor[j] = int(t.get("floor") or 0)
+                building[j] = int(t.get("building") or 0)
+            elif len(fs):
+                heard = np.flatnonzero(~np.isnan(fs.rss[:, j]))
+                if len(heard):
+                    top = heard[np.argsort(-fs.rss[heard, j])[:5]]
+                    w = 10.0 ** (fs.rss[top, j] / 10.0)
+                    pos[j] = (np.sum(w * fs.x[top]) / w.sum(), np.sum(w * fs.y[top]) / w.sum())
+                    floor[j] = int(fs.floor[top[0]])
+                    building[j] = int(fs.building[top[0]])
+            if t.get("tx_power_dbm") is not None:
+                r0[j] = float(t["tx_power_dbm"])
+            if t.get("path_loss_exponent") is not None:
+                gamma[j] = float(t["path_loss_exponent"])
+        # least-squares R0, γ from the survey where not given
+        all_d, all_r = [], []
+        fitted = np.zeros(m, dtype=bool)
+        fr0, fg = np.full(m, np.nan), np.full(m, np.nan)
+        for j in range(m):
+            if len(fs) == 0 or np.isnan(pos[j, 0]):
+                continue
+            heard = ~np.isnan(fs.rss[:, j]) & (fs.building == building[j])
+            if heard.sum() < 3:
+                continue
+            d = self._distance(pos[j], floor[j], fs.x[heard], fs.y[heard], fs.floor[heard])
+            all_d.append(d)
+            all_r.append(fs.rss[heard, j])
+            try:
+                fr0[j], fg[j] = fit_path_loss(d, fs.rss[heard, j])
+                fitted[j] = True
+            except ValueError:
+                pass
+        pooled = (self.default_r0, self.default_gamma)
+        if all_d:
+            try:
+                pooled = fit_path_loss(np.concatenate(all_d), np.concatenate(all_r))
+            except ValueError:
+                pass
+        self.pooled_params_ = pooled
+        r0 = np.where(np.isnan(r0), np.where(fitted, fr0, pooled[0]), r0)
+        gamma = np.where(np.isnan(gamma), np.where(fitted, fg, pooled[1]), gamma)
+        self.tx_pos_, self.tx_floor_, self.tx_building_ = pos, floor, building
+        self.r0_, self.gamma_ = r0, gamma
+
+    def _distance(self, p, floor, x, y, floors):
+        dz = (np.asarray(floors) - floor) * self.floor_height_m
+        return np.sqrt((np.asarray(x) - p[0]) ** 2 + (np.asarray(y) - p[1]) ** 2 + dz**2)
+
+    def transmitter_params(self) -> list[dict]:
+        """Positions and fitted radio parameters, as API Transmitter dicts."""
+        self._check_fitted()
+        return [
+            {"id": t, "kind": tx_kind(t), "floor": int(self.tx_floor_[j]), "building": int(self.tx_building_[j]),
+             "x": None if np.isnan(self.tx_pos_[j, 0]) else float(self.tx_pos_[j, 0]),
+             "y": None if np.isnan(self.tx_pos_[j, 1]) else float(self.tx_pos_[j, 1]),
+             "tx_power_dbm": float(self.r0_[j]), "path_loss_exponent": float(self.gamma_[j])}
+            for j, t in enumerate(self.tx_ids_)
+        ]
+
+    def known_transmitters(self, rss):
+        self._check_fitted()
+        return [t for t in rss if t in self.tx_index_ and not np.isnan(self.tx_pos_[self.tx_index_[t], 0])]
+
+    def estimate(self, rss_row: np.ndarray):
+        """One (m,) RSS row → (xy, cov, building, floor) or None when no anchor is heard."""
+        ok = np.flatnonzero(~np.isnan(rss_row) & ~np.isnan(self.tx_pos_[:, 0]))
+        if len(ok) == 0:
+            return None
+        ok = ok[np.argsort(-rss_row[ok])][: self.max_anchors]
+        power = 10.0 ** (rss_row[ok] / 10.0)
+        votes: dict[tuple, float] = {}
+        for j, w in zip(ok[:3], power[:3]):
+            key = (int(self.tx_building_[j]), int(self.tx_floor_[j]))
+            votes[key] = votes.get(key, 0.0) + w
+        building, floor = max(votes, key=votes.get)
+        d = rss_to_distance(rss_row[ok], self.r0_[ok], self.gamma_[ok])
+        dz = (self.tx_floor_[ok] - floor) * self.floor_height_m
+        r = np.sqrt(np.maximum(d**2 - dz**2, 0.25))
+        A = self.tx_pos_[ok]
+        if self.method == "centroid":
+            xy = weighted_centroid(A, r)
+            w = 1.0 / np.maximum(r, 0.1)
+            w /= w.sum()
+            dev = A - xy
+            cov = (w[:, None, None] * np.einsum("ni,nj->nij", dev, dev)).sum(0) + np.eye(2) * float(np.min(r)) ** 2 / 4
+        else:
+            xy, cov = multilaterate(A, r)
+        return xy, cov, building, floor
+
+    def predict(self, rss, heading_deg=None, *, near=None, radius_m=None, chunk=256) -> Prediction:
+        self._check_fitted()
+        R = self._as_matrix(rss)
+        n = len(R)
+        est = [self.estimate(R[i]) for i in range(n)]
+        parts = []
+        for i, e in enumerate(est):
+            if e is None:  # nothing usable heard: centre of everything known, huge covariance
+                known = self.tx_pos_[~np.isnan(self.tx_pos_[:, 0])]
+                c = known.mean(0) if len(known) else np.zeros(2)
+                e = (c, np.eye(2) * 1e4, 0, 0)
+            xy, cov, b, f = e
+            g = np.flatnonzero((self.group_building_ == b) & (self.group_floor_ == f))
+            if len(self.rp_xy_) and len(g):
+                sigma2 = max(float(np.trace(cov)) / 2.0, self.cov_floor_m_**2)
+                logs = -((self.rp_xy_ - xy) ** 2).sum(-1) / (2.0 * sigma2)
+                logs = np.where(self.rp_group_ == g[0], logs, -np.inf)[None, :]
+                parts.append(self._reduce(logs))
+            else:
+                cov = cov + np.eye(2) * self.cov_floor_m_**2
+                c = min(self.n_candidates, len(self.rp_xy_)) or self.n_candidates
+                parts.append(Prediction(
+                    x=np.array([xy[0]]), y=np.array([xy[1]]), floor=np.array([f]), building=np.array([b]),
+                    covariance=cov[None], best_rp=np.array([-1]), top_rp=np.full((1, c), -1), top_p=np.zeros((1, c)),
+                ))
+        return _concat_predictions(parts)
+
+    def fixes(self, pred: Prediction) -> list[Fix]:
+        if len(self.rp_xy_):
+            return super().fixes(pred)
+        return [Fix(x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
+                    covariance=pred.covariance[i].copy()) for i in range(len(pred))]

@@ -1,0 +1,155 @@
+"""Background training of fingerprint models.
+
+A `TrainingWorker` thread claims queued jobs from the database (a compare-and-set, so
+several server processes can each run a worker) and runs each in a child process, so
+a long fit never holds the request-serving process's interpreter. The child loads the
+site's fingerprints, measures the model on held-out data, refits on everything, and
+stores the artifact, its SHA-256 and the metrics in one transaction. The first model
+of a site that becomes ready is activated in that same transaction.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing
+import threading
+import traceback
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from datetime import datetime, timedelta, timezone
+
+from sqlalchemy.exc import IntegrityError
+
+from server import repositories as repo
+from server.db import Database
+from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
+
+log = logging.getLogger(__name__)
+
+#: Below this many fingerprints a held-out split says nothing; the model is fitted without metrics.
+MIN_FINGERPRINTS_FOR_VALIDATION = 20
+
+
+def build_model(algorithm: str, params: dict, use_heading: bool, kinds: list[str] | None, transmitters: list[dict]):
+    """An unfitted model; the propagation model also gets the site's positioned transmitters."""
+    params = dict(params)
+    if algorithm == "propagation":
+        params.setdefault("transmitters", transmitters)
+    return make_model(algorithm, params, use_heading=use_heading, kinds=kinds or None)
+
+
+def run_training_job(database_url: str, model_id: int) -> str:
+    """Train one claimed model and store the outcome; returns its final status. Runs in a child process."""
+    db = Database(database_url)
+    try:
+        with db.transaction() as s:
+            job = repo.training_job(s, model_id)
+            spec = (job.site_id, job.algorithm, dict(job.params), job.use_heading, list(job.kinds), job.include_crowd)
+            site_id, algorithm, params, use_heading, kinds, include_crowd = spec
+            rows = repo.training_rows(s, site_id, include_crowd)
+            transmitters = repo.positioned_transmitters(s, site_id)
+        try:
+            model, metrics = _fit(rows, algorithm, params, use_heading, kinds, transmitters)
+            blob = to_bytes(model)
+        except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin
+            log.warning("training model %s failed:\n%s", model_id, traceback.format_exc())
+            with db.transaction() as s:
+                repo.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
+            return "failed"
+        _store(db, site_id, model_id, blob, len(rows), metrics)
+        return "ready"
+    finally:
+        db.dispose()
+
+
+def _fit(rows, algorithm, params, use_heading, kinds, transmitters):
+    def factory():
+        return build_model(algorithm, params, use_heading, kinds, transmitters)
+
+    fs = FingerprintSet.from_rows(rows) if rows else None
+    if fs is None:
+        if algorithm != "propagation":
+            raise ValueError("the site has no fingerprints to train on")
+        return factory().fit(None), None
+    if len(fs) < MIN_FINGERPRINTS_FOR_VALIDATION:
+        return factory().fit(fs), None
+    model, metrics = fit_and_validate(factory, fs)
+    figures = {**metrics.as_api_dict(), "fit_time_s": metrics.fit_time_s, "validated_on": metrics.n_test,
+               "building_hit_rate": metrics.building_hit_rate, "us_per_query": metrics.single_query_us}
+    return model, {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
+
+
+def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None) -> None:
+    for activate in (True, False):
+        try:
+            with db.transaction() as s:
+                repo.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics)
+                if activate and not repo.has_active_model(s, site_id):
+                    repo.activate_model(s, site_id, model_id)
+            return
+        except IntegrityError:
+            # Another model of the site became active at the same moment: store this one inactive.
+            continue
+
+
+class TrainingWorker:
+    """Claims queued jobs and trains them one at a time in a child process."""
+
+    def __init__(self, database_url: str, poll_s: float = 2.0, stale_after_s: float = 1800.0):
+        self.database_url = database_url
+        self.poll_s = poll_s
+        self.stale_after = timedelta(seconds=stale_after_s)
+        self._db = Database(database_url)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self.serve_forever, name="training-worker", daemon=True)
+        self._pool: ProcessPoolExecutor | None = None
+
+    def start(self) -> TrainingWorker:
+        self._thread.start()
+        return self
+
+    def wake(self) -> None:
+        """Look for jobs now rather than at the next poll."""
+        self._wake.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=30)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+        self._db.dispose()
+
+    def run_pending(self) -> int:
+        """Train every job that can be claimed now; returns how many ran."""
+        done = 0
+        while not self._stop.is_set():
+            with self._db.transaction() as s:
+                model_id = repo.claim_next_model(s, datetime.now(timezone.utc) - self.stale_after)
+            if model_id is None:
+                return done
+            self._train(model_id)
+            done += 1
+        return done
+
+    def _train(self, model_id: int) -> None:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        try:
+            self._pool.submit(run_training_job, self.database_url, model_id).result()
+        except BrokenProcessPool:
+            self._pool = None
+            with self._db.transaction() as s:
+                repo.fail_training(s, model_id, "the training process died (out of memory?)")
+
+    def serve_forever(self) -> None:
+        """Poll for jobs until `stop` (runs in the worker thread, or in the foreground for the CLI)."""
+        while not self._stop.is_set():
+            try:
+                self.run_pending()
+            except Exception:  # keep the worker alive through a database hiccup; the job stays claimable
+                log.exception("training worker")
+            self._wake.wait(self.poll_s)
+            self._wake.clear()

@@ -1,0 +1,147 @@
+"""Models and locate over real HTTP: background training, metrics, activation, caching, 409/422."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from server.estimation.fingerprint.synthetic import make_site
+
+SYNTH = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
+
+
+def wait_for(admin, site_id: int, model_id: int, timeout_s: float = 90.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        model = admin.get(f"/api/v1/sites/{site_id}/models/{model_id}").json()
+        if model["status"] in ("ready", "failed") or time.monotonic() > deadline:
+            return model
+        time.sleep(0.1)
+
+
+@pytest.fixture
+def site(admin) -> dict:
+    floors = [{"level": 0}, {"level": 1}]
+    site = admin.post("/api/v1/sites", json={"name": "Synthetic", "floors": floors,
+                                             "transmitters": SYNTH.transmitters}).json()
+    rows = SYNTH.survey(scans_per_rp=8, seed=1).to_rows()
+    for row in rows:
+        row.pop("building", None)
+    assert admin.post(f"/api/v1/sites/{site['id']}/surveys", json={"fingerprints": rows}).status_code == 201
+    return site
+
+
+def train(admin, site: dict, **body) -> dict:
+    answer = admin.post(f"/api/v1/sites/{site['id']}/models", json=body)
+    assert answer.status_code == 202, answer.text
+    assert answer.json()["status"] == "queued" and answer.json()["active"] is False
+    return wait_for(admin, site["id"], answer.json()["id"])
+
+
+def test_first_ready_model_is_trained_in_the_background_and_activated(admin, device, site):
+    model = train(admin, site, algorithm="knn", params={"k": 3})
+    assert model["status"] == "ready", model
+    assert model["active"] is True
+    assert model["trained_on"] == len(SYNTH.rp) * 8
+    metrics = model["metrics"]
+    assert 0 <= metrics["mean_error_m"] < 4.0 and metrics["floor_hit_rate"] > 0.9
+    assert metrics["p50_error_m"] <= metrics["p90_error_m"]
+
+    rng = np.random.default_rng(5)
+    label, x, y, floor = SYNTH.rp[4]
+    answer = device.post(f"/api/v1/sites/{site['id']}/locate", json={"rss": SYNTH.scan(x, y, floor, None, rng, 1.0)})
+    assert answer.status_code == 200, answer.text
+    fix = answer.json()
+    assert fix["floor"] == floor and fix["reference_point"] == label
+    assert np.hypot(fix["x"] - x, fix["y"] - y) < 2.0
+    assert fix["model_id"] == model["id"] and fix["algorithm"] == "knn"
+    cov = np.array(fix["covariance"])
+    assert cov.shape == (2, 2) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert fix["candidates"][0]["label"] == label
+
+
+def test_second_model_stays_inactive_until_activated_and_locate_follows(admin, device, site, live_server):
+    first = train(admin, site, algorithm="knn")
+    second = train(admin, site, algorithm="nbc")
+    assert second["status"] == "ready" and second["active"] is False
+    scan = {"rss": SYNTH.scan(4.0, 4.0, 0, None, np.random.default_rng(1), 1.0)}
+    assert device.post(f"/api/v1/sites/{site['id']}/locate", json=scan).json()["algorithm"] == "knn"
+
+    activated = admin.post(f"/api/v1/sites/{site['id']}/models/{second['id']}/activate")
+    assert activated.status_code == 200 and activated.json()["active"] is True
+    models = {m["id"]: m for m in admin.get(f"/api/v1/sites/{site['id']}/models").json()}
+    assert models[first["id"]]["active"] is False and models[second["id"]]["active"] is True
+    assert device.post(f"/api/v1/sites/{site['id']}/locate", json=scan).json()["algorithm"] == "nbc"
+    chosen = device.post(f"/api/v1/sites/{site['id']}/locate", json={**scan, "model_id": first["id"]})
+    assert chosen.json()["model_id"] == first["id"]
+
+    loads = live_server.app.state.positioning.cache.loads
+    for _ in range(5):
+        device.post(f"/api/v1/sites/{site['id']}/locate", json=scan)
+    assert live_server.app.state.positioning.cache.loads == loads  # served from the cache
+
+
+@pytest.mark.parametrize("algorithm", ["nbc", "knn", "svm", "kde", "tkbe", "propagation"])
+def test_every_algorithm_trains_and_locates_over_http(admin, device, site, algorithm):
+    model = train(admin, site, algorithm=algorithm, kinds=["wifi", "ble"])
+    assert model["status"] == "ready", model["error"]
+    label, x, y, floor = SYNTH.rp[7]
+    scan = SYNTH.scan(x, y, floor, None, np.random.default_rng(3), 1.0)
+    fix = device.post(f"/api/v1/sites/{site['id']}/locate", json={"rss": scan, "model_id": model["id"]}).json()
+    assert fix["floor"] == floor
+    assert np.hypot(fix["x"] - x, fix["y"] - y) < 4.0
+
+
+def test_failed_training_reports_a_readable_error(admin, site):
+    model = train(admin, site, algorithm="knn", kinds=["ble"], params={"k": 3})
+    assert model["status"] == "ready"
+    empty = admin.post("/api/v1/sites", json={"name": "No survey"}).json()
+    failed = train(admin, empty, algorithm="knn")
+    assert failed["status"] == "failed" and "no fingerprints" in failed["error"]
+    assert failed["active"] is False
+
+
+def test_locate_409_without_a_ready_model_and_422_for_unknown_transmitters(admin, device, site):
+    url = f"/api/v1/sites/{site['id']}/locate"
+    none_yet = device.post(url, json={"rss": {"wifi:w00": -50}})
+    assert none_yet.status_code == 409 and "no ready model" in none_yet.json()["detail"]
+    train(admin, site, algorithm="knn")
+    unknown = device.post(url, json={"rss": {"wifi:never-seen": -50}})
+    assert unknown.status_code == 422 and unknown.json()["detail"][0]["field"] == "rss"
+    assert device.post(url, json={"rss": {"wifi:w00": 3}}).status_code == 422
+    assert device.post(url, json={"rss": {}}).status_code == 422
+    assert device.post("/api/v1/sites/999/locate", json={"rss": {"wifi:w00": -50}}).status_code == 404
+    assert device.post(url, json={"rss": {"wifi:w00": -50}, "model_id": 999}).status_code == 404
+
+
+def test_activating_a_model_that_is_not_ready_is_409(admin, site):
+    failed = train(admin, admin.post("/api/v1/sites", json={"name": "empty"}).json(), algorithm="knn")
+    answer = admin.post(f"/api/v1/sites/{failed['site_id']}/models/{failed['id']}/activate")
+    assert answer.status_code == 409 and "failed" in answer.json()["detail"]
+
+
+@pytest.mark.parametrize(
+    "body, field",
+    [
+        ({"algorithm": "deep-magic"}, "algorithm"),
+        ({"algorithm": "knn", "params": {"k": 3, "bogus": 1}}, "params"),
+        ({"algorithm": "knn", "kinds": ["lte"]}, "kinds"),
+        ({"algorithm": "knn", "kinds": []}, "kinds"),
+    ],
+)
+def test_invalid_model_requests_are_422_and_store_nothing(admin, site, snapshot, body, field):
+    before = snapshot()
+    answer = admin.post(f"/api/v1/sites/{site['id']}/models", json=body)
+    assert answer.status_code == 422 and answer.json()["detail"][0]["field"].startswith(field)
+    assert snapshot() == before
+
+
+def test_model_endpoints_scope_rules(anonymous, device, site):
+    for method, path in [("POST", f"/api/v1/sites/{site['id']}/models"), ("GET", f"/api/v1/sites/{site['id']}/models"),
+                         ("GET", f"/api/v1/sites/{site['id']}/models/1"),
+                         ("POST", f"/api/v1/sites/{site['id']}/models/1/activate")]:
+        assert anonymous.request(method, path, json={"algorithm": "knn"}).status_code == 401
+        assert device.request(method, path, json={"algorithm": "knn"}).status_code == 403
+    assert anonymous.post(f"/api/v1/sites/{site['id']}/locate", json={"rss": {"wifi:w00": -50}}).status_code == 401

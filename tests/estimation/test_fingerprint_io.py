@@ -1,0 +1,108 @@
+"""Artifacts (round trip, checksum refusal), loaders, evaluate CLI."""
+
+import numpy as np
+import pytest
+
+from server import evaluate as evaluate_cli
+from server.estimation.fingerprint import ArtifactError, FingerprintModel, checksum, from_bytes, make_model
+from server.estimation.fingerprint.artifact import MAGIC
+from server.estimation.fingerprint.loaders import (
+    read_survey_csv,
+    read_uji_ble,
+    read_ujiindoorloc,
+    write_survey_csv,
+)
+from server.estimation.fingerprint.synthetic import make_site
+
+
+@pytest.fixture(scope="module")
+def site_and_survey():
+    site = make_site(seed=7, noise_db=1.0)
+    return site, site.survey(scans_per_rp=4, seed=0)
+
+
+@pytest.mark.parametrize("name", ["knn", "nbc", "kde", "tkbe", "svm", "propagation"])
+def test_artifact_round_trip(name, site_and_survey):
+    site, fs = site_and_survey
+    params = {"time_budget_s": 2.0, "C": 10.0} if name == "svm" else {}
+    model = make_model(name, params, use_heading=True).fit(fs)
+    blob = model.to_bytes()
+    again = FingerprintModel.from_bytes(blob)
+    assert type(again) is type(model) and again.get_params() == model.get_params()
+    scans = site.survey(scans_per_rp=1, seed=3).scans()[:10]
+    a, b = model.locate_many(scans, 90.0), again.locate_many(scans, 90.0)
+    assert [(f.x, f.y, f.floor, f.reference_point) for f in a] == [(f.x, f.y, f.floor, f.reference_point) for f in b]
+    assert len(checksum(blob)) == 64
+
+
+def test_artifact_refuses_corruption(site_and_survey):
+    _, fs = site_and_survey
+    blob = make_model("knn").fit(fs).to_bytes()
+    flipped = bytearray(blob)
+    flipped[-20] ^= 0x01
+    with pytest.raises(ArtifactError):
+        from_bytes(bytes(flipped))
+    with pytest.raises(ArtifactError):
+        from_bytes(blob[:-1])  # truncated
+    with pytest.raises(ArtifactError):
+        from_bytes(b"XX" + blob[2:])  # bad header
+    with pytest.raises(ArtifactError):
+        from_bytes(b"")
+    import hashlib
+    import pickle
+
+    payload = pickle.dumps({"not": "a model"})
+    with pytest.raises(ArtifactError):
+        from_bytes(MAGIC + hashlib.sha256(payload).digest() + payload)
+
+
+def test_survey_csv_round_trip(tmp_path, site_and_survey):
+    _, fs = site_and_survey
+    path = tmp_path / "survey.csv"
+    write_survey_csv(fs, path)
+    back = read_survey_csv(path)
+    assert back.tx_ids == fs.tx_ids
+    assert np.array_equal(np.isnan(back.rss), np.isnan(fs.rss))
+    assert np.allclose(np.nan_to_num(back.rss), np.nan_to_num(fs.rss), atol=1e-4)
+    assert list(back.label) == list(fs.label) and np.allclose(back.heading_deg, fs.heading_deg, equal_nan=True)
+    assert len(back.reference_points()) == len(fs.reference_points())
+
+
+def test_read_ujiindoorloc_skips_silent_rows(tmp_path):
+    head = "WAP001,WAP002,WAP003,LONGITUDE,LATITUDE,FLOOR,BUILDINGID,SPACEID,RELATIVEPOSITION,USERID,PHONEID,TIMESTAMP"
+    rows = [
+        "-60,100,-80,-7600.5,4864900.25,1,0,101,2,3,13,1371710000",
+        "100,100,100,-7600.5,4864900.25,1,0,101,2,3,13,1371710001",
+        "100,-70,100,-7610.0,4864910.0,2,1,102,2,4,14,1371710002",
+    ]
+    p = tmp_path / "uji.csv"
+    p.write_text(head + "\n" + "\n".join(rows) + "\n")
+    fs = read_ujiindoorloc(p)
+    assert len(fs) == 2 and fs.meta["skipped"] == 1
+    assert fs.tx_ids == ["wifi:wap001", "wifi:wap002", "wifi:wap003"]
+    assert np.isnan(fs.rss[0, 1]) and fs.rss[0, 0] == -60
+    assert list(fs.building) == [0, 1] and list(fs.floor) == [1, 2]
+    assert list(fs.device) == [13, 14] and fs.x[0] == -7600.5
+
+
+def test_read_uji_ble(tmp_path):
+    (tmp_path / "rss").mkdir()
+    (tmp_path / "dep").mkdir()
+    (tmp_path / "rss" / "lib_rss.csv").write_text("-60,100\n100,100\n-70,-80\n")
+    (tmp_path / "rss" / "lib_crd.csv").write_text("1.0,2.0\n1.0,2.0\n3.0,4.0\n")
+    (tmp_path / "rss" / "lib_ids.csv").write_text("12200101\n12200102\n22300201\n")
+    (tmp_path / "dep" / "lib.csv").write_text("id,x,y\n23,0.5,0.5\n24,5.0,5.0\n")
+    fs = read_uji_ble(tmp_path)
+    assert fs.tx_ids == ["ble:lib23", "ble:lib24"] and len(fs) == 2 and fs.meta["skipped"] == 1
+    assert list(fs.device) == [1, 2] and list(fs.label) == ["p001", "p002"]
+
+
+def test_evaluate_cli_prints_table(tmp_path, capsys, site_and_survey):
+    _, fs = site_and_survey
+    path = tmp_path / "s.csv"
+    write_survey_csv(fs, path)
+    rc = evaluate_cli.main([str(path), "--split", "phone", "--algorithms", "knn,nbc", "--kinds", "wifi,ble"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if ln.startswith(("knn", "nbc"))]
+    assert len(lines) == 2
