@@ -162,3 +162,37 @@ def time_order(steps: list[Step], scans: list[Scan]) -> list[tuple[str, int, Ste
     items = [("step", i, s) for i, s in enumerate(steps)] + [("scan", i, s) for i, s in enumerate(scans)]
     items.sort(key=lambda it: (it[2].t, 0 if it[0] == "step" else 1, it[1]))
     return items
+
+
+def multilateration_fix(
+    rss: dict[str, float],
+    beacons: dict[str, Beacon],
+    floor_hint: int | None = None,
+    default_r0_dbm: float = -45.0,
+    default_gamma: float = 2.5,
+    max_anchors: int = 8,
+) -> Fix | None:
+    """Least-squares multilateration from the heard transmitters with known positions
+    (ranges by the path-loss model, each transmitter's own R0/γ where stored), on
+    ``floor_hint`` or else the floor of the strongest heard transmitter that has one.
+    None when no positioned transmitter is heard or the floor cannot be told."""
+    from server.estimation.fingerprint import multilaterate
+    from server.estimation.tracking import range_from_rss
+
+    heard = sorted(((v, beacons[k]) for k, v in rss.items() if k in beacons), key=lambda vb: -vb[0])
+    floor = floor_hint
+    if floor is None:
+        floor = next((b.floor for _, b in heard if b.floor is not None), None)
+    anchors = [(v, b) for v, b in heard if b.floor in (None, floor)][:max_anchors]
+    if floor is None or not anchors:
+        return None
+    xy = np.array([[b.x, b.y] for _, b in anchors])
+    ranges = np.array([
+        range_from_rss(v, default_r0_dbm if b.tx_power_dbm is None else b.tx_power_dbm,
+                       default_gamma if b.path_loss_exponent is None else b.path_loss_exponent)
+        for v, b in anchors
+    ])
+    mean, cov = multilaterate(xy, ranges)
+    if not np.all(np.isfinite(mean)):
+        return None
+    return Fix(float(mean[0]), float(mean[1]), int(floor), fix_cov(cov))

@@ -19,7 +19,8 @@ from server import repositories as repo
 from server.auth import Principal
 from server.db import Database
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
-from server.estimation.session import Beacon, SessionEstimator, time_order
+from server.estimation.fingerprint import cold_start_fix
+from server.estimation.session import Beacon, SessionEstimator, multilateration_fix, time_order
 from server.estimation.tracking import gate, make_crowd_point, merge_points
 from server.estimation.tracking.crowd import find_merge_target
 from server.estimation.types import Fix, Scan, Step
@@ -170,10 +171,18 @@ class SessionService:
                 skipped.append(SkippedScan(index=i, reason=_reason(exc)))
                 est.last_t = item.t
                 continue
+            cold = not est.started
             e = est.scan(item, fix, beacons, walls_of)
             applied_scans += 1
             estimates.append(e)
-            if settings.get("crowdsourcing") and gate([e["x"], e["y"]], e["covariance"], fix.mean, item.rss) and e["floor"] == fix.floor:
+            # Crowdsourcing: a tight estimate that agrees with the model's own fix for the scan
+            # (never the cold-start scan: there the estimate *is* the fix).
+            if (
+                settings.get("crowdsourcing")
+                and not cold
+                and e["floor"] == fix.floor
+                and gate([e["x"], e["y"]], e["covariance"], fix.mean, item.rss)
+            ):
                 crowd.append((make_crowd_point(e["x"], e["y"], e["floor"], item.rss), item))
         answer = BatchResult(
             seq=batch.seq,
@@ -185,7 +194,24 @@ class SessionService:
         return _Outcome(answer, est.to_dict(), estimates, crowd)
 
     def _fix(self, row: TrackingSession, scan: Scan, est: SessionEstimator, beacons: dict[str, Beacon]) -> Fix:
-        """The fingerprint fix of one scan (restricted to the tracker's search region, if any)."""
+        """The fingerprint fix of one scan (restricted to the tracker's search region, if any).
+
+        The first fix of a session without ``initial`` is the cold-start fusion (DESIGN.md):
+        fingerprint fix ⊕ multilateration from transmitters with known positions, weights
+        exp(−d) normalised; either alone when the other is unavailable."""
+        if not est.started:
+            fingerprint, why = None, None
+            try:
+                fingerprint = self._locate(row, scan, est)
+            except ServiceError as exc:
+                why = exc
+            ml = multilateration_fix(scan.rss, beacons, None if fingerprint is None else fingerprint.floor)
+            if fingerprint is None and ml is None:
+                raise why if why is not None else Invalid("no fix")
+            return cold_start_fix(fingerprint, ml)
+        return self._locate(row, scan, est)
+
+    def _locate(self, row: TrackingSession, scan: Scan, est: SessionEstimator) -> Fix:
         if self.positioning is None:
             raise Conflict("no fingerprint model service is configured")
         near = radius = None

@@ -158,11 +158,20 @@ def test_before_the_first_fix_the_estimate_is_null(device, site):
     assert device.get(f"/api/v1/sessions/{sid}").json()["estimate"] is None
     r = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(0, 0.0, 3)).json()
     assert r["estimate"] is None and r["applied_steps"] == 0
-    # without a fingerprint model a scan gives no fix: it is skipped and said so
-    scans = [{"t": 5.0, "rss": {"wifi:ap1": -50}}]
+    # without a fingerprint model, a scan of transmitters with no known position gives no fix
+    scans = [{"t": 5.0, "rss": {"wifi:free": -50}}]
     r = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(1, 3.0, 1, scans)).json()
     assert r["applied_scans"] == 0 and r["skipped_scans"][0]["index"] == 0
     assert device.get(f"/api/v1/sessions/{sid}/track").json() == []
+
+
+def test_cold_start_without_a_model_multilaterates_from_positioned_transmitters(device, site):
+    sid = open_session(device, site, "ekf", initial=False)["id"]
+    rss = {"wifi:ap1": -45.0 - 25 * math.log10(5.0), "wifi:ap2": -45.0 - 25 * math.log10(5.0),
+           "wifi:ap3": -45.0 - 25 * math.log10(math.hypot(5, 10))}  # truth (5, 0), default R0/γ
+    r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 0.0, "rss": rss}]}).json()
+    assert r["applied_scans"] == 1 and r["estimate"]["source"] == "scan" and r["estimate"]["floor"] == 0
+    assert math.hypot(r["estimate"]["x"] - 5.0, r["estimate"]["y"]) < 1.0, r
 
 
 def test_scan_with_no_known_transmitter_is_skipped_not_fatal(device, site, positioning):
@@ -480,7 +489,17 @@ def test_crowdsourcing_on_stores_and_merges_crowd_points(admin, device, site, po
 def test_crowdsourcing_gate_refuses_uncertain_estimates(admin, device, site, positioning, clean_db):
     admin.patch(f"/api/v1/sites/{site}", json={"settings": {"crowdsourcing": True}})
     positioning.var = 25.0  # a vague fix: the estimate stays uncertain (trace > 2 m²)
-    sid = open_session(device, site, "ekf", initial=False)["id"]
+    initial = {"x": 0.5, "y": 0.5, "floor": 0, "covariance": [[4, 0], [0, 4]]}
+    sid = device.post("/api/v1/sessions", json={"site_id": site, "filter": "ekf", "initial": initial}).json()["id"]
+    r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 0.5, "rss": CONFIDENT_SCAN}]})
+    assert r.json()["applied_scans"] == 1 and np.trace(r.json()["estimate"]["covariance"]) > 2.0
+    assert _crowd_rows(clean_db) == []
+
+
+def test_the_cold_start_scan_is_not_crowdsourced(admin, device, site, positioning, clean_db):
+    """The first fix of a session without initial is the estimate itself: no independent check."""
+    admin.patch(f"/api/v1/sites/{site}", json={"settings": {"crowdsourcing": True}})
+    sid = open_session(device, site, "kf", initial=False)["id"]
     r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 0.5, "rss": CONFIDENT_SCAN}]})
     assert r.json()["applied_scans"] == 1
     assert _crowd_rows(clean_db) == []
