@@ -105,6 +105,8 @@ class SessionService:
         if len(batch.scans) > MAX_BATCH_SCANS:
             raise TooLarge([{"field": "scans", "msg": f"{len(batch.scans)} scans > {MAX_BATCH_SCANS} in one batch"}])
         for _ in range(MAX_ATTEMPTS):
+            # 1. read the session (short transaction; no connection is held while computing,
+            #    since computing asks the positioning service, which opens its own)
             with self.db.transaction() as s:
                 row = _owned(s, principal, session_id)
                 if batch.seq <= row.last_seq:
@@ -117,7 +119,19 @@ class SessionService:
                     return BatchResult(**answer)
                 if row.status != "open":
                     raise Conflict([{"field": "session", "msg": f"session {session_id} is closed"}])
-                outcome = self._apply(s, row, batch)
+                beacons: dict[str, Beacon] = {}
+                settings: dict[str, Any] = {}
+                if batch.scans:
+                    beacons = {
+                        t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
+                        for t in repo.positioned_transmitters(s, row.site_id)
+                        if t["y"] is not None
+                    }
+                    settings = repo.site_settings(s, row.site_id) or {}
+            # 2. compute against that state
+            outcome = self._apply(row, batch, beacons, settings)
+            # 3. write it all in one transaction, if nobody applied a batch meanwhile
+            with self.db.transaction() as s:
                 if repo.save_batch(
                     s, session_id, expected_last_seq=row.last_seq, seq=batch.seq, state=outcome.state,
                     answer=outcome.answer, first_idx=row.track_length,
@@ -129,7 +143,9 @@ class SessionService:
                 s.rollback()  # lost the race: start over from the stored state
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
-    def _apply(self, s, row: TrackingSession, batch: BatchIn) -> _Outcome:
+    def _apply(
+        self, row: TrackingSession, batch: BatchIn, beacons: dict[str, Beacon], settings: dict[str, Any]
+    ) -> _Outcome:
         """Compute the batch against the stored state (nothing is written here)."""
         est = SessionEstimator.from_dict(row.state)
         steps = [
@@ -146,16 +162,7 @@ class SessionService:
             ]
             if late:
                 raise Invalid(late[:100])
-        beacons: dict[str, Beacon] = {}
-        settings: dict[str, Any] = {}
-        if scans:
-            beacons = {
-                t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
-                for t in repo.positioned_transmitters(s, row.site_id)
-                if t["y"] is not None
-            }
-            settings = repo.site_settings(s, row.site_id) or {}
-        walls_of = lambda level: repo.floor_walls(s, row.site_id, level)  # noqa: E731
+        walls_of = lambda level: self._walls(row.site_id, level)  # noqa: E731
         estimates, crowd, skipped = [], [], []
         applied_steps = applied_scans = 0
         for kind, i, item in time_order(steps, scans):
@@ -192,6 +199,10 @@ class SessionService:
             skipped_scans=skipped,
         ).model_dump(mode="json")
         return _Outcome(answer, est.to_dict(), estimates, crowd)
+
+    def _walls(self, site_id: int, level: int) -> list:
+        with self.db.transaction() as s:
+            return repo.floor_walls(s, site_id, level)
 
     def _fix(self, row: TrackingSession, scan: Scan, est: SessionEstimator, beacons: dict[str, Beacon]) -> Fix:
         """The fingerprint fix of one scan (restricted to the tracker's search region, if any).
