@@ -158,3 +158,14 @@ def test_registry_rejects_unknown_names():
     m = make_model("knn", {"k": 5}, use_heading=True, kinds=["wifi"])
     assert m.k == 5 and m.use_heading and m.kinds == ["wifi"]
     assert {"nbc", "knn", "svm", "kde", "tkbe", "propagation"} <= set(ALGORITHMS)
+
+
+@pytest.mark.parametrize("clf", ["svc", "trees"])
+def test_dedicated_floor_classifier(clf, site, survey):
+    model = KNNModel(floor_classifier=clf).fit(survey)
+    qs = _queries(site, n_per_rp=1, seed=12)
+    fixes = model.locate_many([q[4] for q in qs])
+    assert all(fx.floor == q[3] for fx, q in zip(fixes, qs))
+    assert all(c.floor == fx.floor for fx in fixes for c in fx.candidates)
+    with pytest.raises(ValueError):
+        KNNModel(floor_classifier="magic")
