@@ -105,6 +105,7 @@ class PropagationModel(FingerprintModel):
     def __init__(self, transmitters: Sequence[Mapping] | None = None, method: str = "multilateration",
                  floor_height_m: float = 4.0, default_r0: float = -45.0, default_gamma: float = 2.5,
                  max_anchors: int = 8, **common):
+        common.setdefault("floor_classifier", None)  # has its own floor logic
         super().__init__(**common)
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}")

@@ -32,6 +32,7 @@ class SVMModel(FingerprintModel):
 
     def __init__(self, C: float | None = None, gamma: float | None = None, time_budget_s: float = 120.0,
                  cv_rows: int = 2000, seed: int = 0, **common):
+        common.setdefault("floor_classifier", None)  # has its own floor logic
         super().__init__(**common)
         self.C = C
         self.gamma = gamma
