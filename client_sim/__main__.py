@@ -109,6 +109,12 @@ def cmd_report(a) -> None:
     print(markdown_table(write_report(a.results, a.out)), end="")
 
 
+def cmd_demo(a) -> None:
+    from .demo import main as demo
+
+    sys.exit(demo(a))
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="client_sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -169,6 +175,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="crowd_results.json")
     p.set_defaults(func=cmd_crowd)
+
+    p = sub.add_parser("demo", help="start a server on SQLite, survey a demo site, track simulated phones")
+    p.add_argument("--phones", type=int, default=12)
+    p.add_argument("--port", type=int, help="default: a free port")
+    p.add_argument("--database-url", help="default: the server's own (SQLite file in the working directory)")
+    p.add_argument("--out", default="reports/demo")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--once", action="store_true", help="stop the server after the demo instead of serving on")
+    p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("report", help="error table, CDF and trajectory plots from track results")
     p.add_argument("results", nargs="+")

@@ -527,6 +527,10 @@ def finish_training(
     )
 
 
+def requeue_model(s: Session, model_id: int) -> None:
+    s.execute(update(Model).where(Model.id == model_id, Model.status == "training").values(status="queued"))
+
+
 def fail_training(s: Session, model_id: int, error: str) -> None:
     s.execute(update(Model).where(Model.id == model_id).values(status="failed", error=error[:2000]))
 

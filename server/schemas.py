@@ -90,7 +90,18 @@ class SiteIn(Strict):
         ids = [t.id for t in self.transmitters]
         if len(ids) != len(set(ids)):
             raise ValueError("transmitter ids must be unique")
+        undeclared = undeclared_floors(set(levels), self.transmitters)
+        if undeclared:
+            raise ValueError(undeclared)
         return self
+
+
+def undeclared_floors(declared: set[int], transmitters: list[TransmitterIn]) -> str | None:
+    """A site that declares floors accepts transmitters on those floors only; None when all are fine."""
+    if not declared:
+        return None
+    bad = [t.id for t in transmitters if t.floor is not None and t.floor not in declared]
+    return f"transmitter(s) {', '.join(bad[:10])} on a floor the site does not declare {sorted(declared)}" if bad else None
 
 
 class FloorOut(BaseModel):

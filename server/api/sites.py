@@ -16,6 +16,7 @@ from server.schemas import (
     SitePatch,
     TransmitterList,
     TransmitterOut,
+    undeclared_floors,
 )
 from server.tables import Site, Transmitter
 
@@ -99,6 +100,8 @@ def put_transmitters(site_id: int, body: TransmitterList, db: DB, _: Admin) -> l
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "transmitter ids must be unique in one request")
     with db.transaction() as s:
         existing_site(s, site_id)
+        if problem := undeclared_floors(repo.floor_levels(s, site_id), body):
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, problem)
         repo.upsert_transmitters(s, site_id, body)
         return [_transmitter_out(t) for t in repo.list_transmitters(s, site_id)]
 

@@ -2,7 +2,7 @@
 
 A `TrainingWorker` thread claims queued jobs from the database (a compare-and-set, so
 several server processes can each run a worker) and runs each in a child process, so
-a long fit never holds the request-serving process's interpreter. The child loads the
+a long fit never holds the request-serving process's interpreter (GIL) or memory. The child loads the
 site's fingerprints, measures the model on held-out data, refits on everything, and
 stores the artifact, its SHA-256 and the metrics in one transaction. The first model
 of a site that becomes ready is activated in that same transaction.
@@ -15,8 +15,6 @@ import math
 import multiprocessing
 import threading
 import traceback
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from datetime import datetime, timedelta, timezone
 
 from sqlalchemy.exc import IntegrityError
@@ -94,7 +92,11 @@ def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: i
 
 
 class TrainingWorker:
-    """Claims queued jobs and trains them one at a time in a child process."""
+    """Claims queued jobs and trains each in a fresh child process, one at a time.
+
+    A child per job keeps the server's memory flat between jobs, and `stop` can end a
+    training in progress (the job goes back to the queue).
+    """
 
     def __init__(self, database_url: str, poll_s: float = 2.0, stale_after_s: float = 1800.0):
         self.database_url = database_url
@@ -104,7 +106,7 @@ class TrainingWorker:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self.serve_forever, name="training-worker", daemon=True)
-        self._pool: ProcessPoolExecutor | None = None
+        self._context = multiprocessing.get_context("spawn")
 
     def start(self) -> TrainingWorker:
         self._thread.start()
@@ -117,9 +119,8 @@ class TrainingWorker:
     def stop(self) -> None:
         self._stop.set()
         self._wake.set()
-        self._thread.join(timeout=30)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        if self._thread.is_alive():
+            self._thread.join(timeout=30)
         self._db.dispose()
 
     def run_pending(self) -> int:
@@ -135,14 +136,20 @@ class TrainingWorker:
         return done
 
     def _train(self, model_id: int) -> None:
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-        try:
-            self._pool.submit(run_training_job, self.database_url, model_id).result()
-        except BrokenProcessPool:
-            self._pool = None
+        child = self._context.Process(
+            target=run_training_job, args=(self.database_url, model_id), name=f"train-model-{model_id}", daemon=True
+        )
+        child.start()
+        while child.is_alive() and not self._stop.is_set():
+            child.join(timeout=0.5)
+        if child.is_alive():  # shutting down: end the fit and hand the job back to the queue
+            child.terminate()
+            child.join()
             with self._db.transaction() as s:
-                repo.fail_training(s, model_id, "the training process died (out of memory?)")
+                repo.requeue_model(s, model_id)
+        elif child.exitcode != 0:
+            with self._db.transaction() as s:
+                repo.fail_training(s, model_id, f"the training process died (exit code {child.exitcode})")
 
     def serve_forever(self) -> None:
         """Poll for jobs until `stop` (runs in the worker thread, or in the foreground for the CLI)."""

@@ -1,0 +1,134 @@
+"""Latency and throughput of ``POST /locate`` through HTTP on a UJIIndoorLoc-size site.
+
+    python benchmarks/locate_http.py ../shared/data/ujiindoorloc/trainingData.csv --algorithm knn
+
+Starts a real server process on a fresh SQLite file, uploads the training file, trains
+the model and waits for it, then sends held-back scans (rows of the same file) to
+``locate``: first one at a time (latency p50/p99), then from concurrent clients
+(fixes per second). The baseline, in this process, is the same model's ``locate``
+called directly (no HTTP, no database): the ratio is what the service adds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import csv
+import io
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from server.estimation.fingerprint import from_bytes  # noqa: E402
+from client_sim.server_process import start_server, stop_server  # noqa: E402
+from server.upload import upload  # noqa: E402
+
+ADMIN, DEVICE = "bench-admin", "bench-device"
+
+
+def query_scans(path: Path, n: int, seed: int = 0) -> list[dict[str, float]]:
+    """``n`` random rows of the UJIIndoorLoc file as scans (heard transmitters only)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    header, rows = rows[0], rows[1:]
+    waps = [(i, "wifi:" + h.lower()) for i, h in enumerate(header) if h.startswith("WAP")]
+    scans = [{tx: float(r[i]) for i, tx in waps if r[i] != "100"} for r in rows]
+    scans = [s for s in scans if s]
+    pick = np.random.default_rng(seed).choice(len(scans), size=n, replace=False)
+    return [scans[i] for i in pick]
+
+
+async def fire(base: str, url: str, scans: list[dict], concurrency: int) -> tuple[float, list[float]]:
+    latencies: list[float] = []
+    queue = list(scans)
+    limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, limits=limits,
+                                 timeout=60) as client:
+        async def worker() -> None:
+            while queue:
+                scan = queue.pop()
+                t0 = time.perf_counter()
+                answer = await client.post(url, json={"rss": scan})
+                latencies.append(time.perf_counter() - t0)
+                answer.raise_for_status()
+
+        started = time.perf_counter()
+        await asyncio.gather(*(worker() for _ in range(concurrency)))
+        return time.perf_counter() - started, latencies
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", type=Path, help="UJIIndoorLoc trainingData.csv")
+    parser.add_argument("--algorithm", default="knn")
+    parser.add_argument("--requests", type=int, default=2000)
+    parser.add_argument("--concurrency", type=int, default=16)
+    parser.add_argument("--workers", type=int, default=2, help="server processes")
+    parser.add_argument("--port", type=int, default=8792)
+    args = parser.parse_args()
+
+    scans = query_scans(args.data, args.requests)
+    with tempfile.TemporaryDirectory() as tmp:
+        url = f"sqlite:///{tmp}/bench.db"
+        server = start_server(args.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": ADMIN,
+                                           "LOCALIZER_DEVICE_KEYS": DEVICE}, args.workers)
+        base = f"http://127.0.0.1:{args.port}"
+        admin = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=60)
+        try:
+            site = admin.post("/api/v1/sites", json={"name": "uji"}).json()
+            code = upload(args.data, base, ADMIN, site["id"], "ujiindoorloc", progress=False, validate_first=False,
+                          out=io.StringIO())
+            assert code == 0
+            t0 = time.perf_counter()
+            model = admin.post(f"/api/v1/sites/{site['id']}/models", json={"algorithm": args.algorithm}).json()
+            while model["status"] not in ("ready", "failed"):
+                time.sleep(0.5)
+                model = admin.get(f"/api/v1/sites/{site['id']}/models/{model['id']}").json()
+            train_s = time.perf_counter() - t0
+            if model["status"] != "ready":
+                raise SystemExit(f"training failed: {model['error']}")
+            locate_url = f"/api/v1/sites/{site['id']}/locate"
+            asyncio.run(fire(base, locate_url, scans[:50], 1))  # warm every worker's model cache
+            _, serial = asyncio.run(fire(base, locate_url, scans[: args.requests // 4], 1))
+            elapsed, _ = asyncio.run(fire(base, locate_url, scans, args.concurrency))
+            blob = _artifact(url, model["id"])
+        finally:
+            admin.close()
+            stop_server(server)
+
+    direct = from_bytes(blob)
+    t0 = time.perf_counter()
+    for scan in scans[:500]:
+        direct.locate(scan)
+    direct_s = (time.perf_counter() - t0) / 500
+
+    serial_ms = np.array(serial) * 1e3
+    print(f"site: {args.data.name}, model {args.algorithm} trained on {model['trained_on']} fingerprints "
+          f"(queued → ready in {train_s:.1f} s); server: {args.workers} process(es), SQLite")
+    print(f"baseline, model.locate in this process: {direct_s * 1e3:.2f} ms per fix")
+    print(f"HTTP, one client:  p50 {np.percentile(serial_ms, 50):.2f} ms, p99 {np.percentile(serial_ms, 99):.2f} ms "
+          f"({np.percentile(serial_ms, 50) / (direct_s * 1e3):.1f}x baseline)")
+    print(f"HTTP, {args.concurrency} concurrent clients: {len(scans) / elapsed:.0f} fixes/s "
+          f"over {len(scans)} requests")
+
+
+def _artifact(database_url: str, model_id: int) -> bytes:
+    from server import repositories as repo
+    from server.db import Database
+
+    db = Database(database_url)
+    with db.transaction() as s:
+        blob = bytes(repo.model_artifact(s, model_id).blob)
+    db.dispose()
+    return blob
+
+
+if __name__ == "__main__":
+    main()
