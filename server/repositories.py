@@ -325,6 +325,7 @@ def save_batch(
     answer: dict,
     first_idx: int,
     estimates: Sequence[dict],
+    init_t: float | None = None,
 ) -> bool:
     """Compare-and-set: store the batch's outcome only if the session is still open at ``expected_last_seq``.
 
@@ -346,6 +347,13 @@ def save_batch(
         return False
     s.execute(insert(SessionBatch), [{"session_id": session_id, "seq": seq, "answer": answer}])
     add_track_estimates(s, session_id, first_idx, estimates)
+    if init_t is not None:  # the initial estimate takes the time of the session's first input
+        s.execute(
+            update(TrackEstimate)
+            .where(TrackEstimate.session_id == session_id, TrackEstimate.idx == 0, TrackEstimate.t.is_(None))
+            .values(t=init_t)
+            .execution_options(synchronize_session=False)
+        )
     return True
 
 

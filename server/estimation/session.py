@@ -69,6 +69,8 @@ class SessionEstimator:
         self.landmarks = LandmarkCorrector({})
         self.last_t: float | None = None
         self.estimate: dict[str, Any] | None = None
+        #: set (not stored) when the initial estimate, opened without a time, got one now
+        self.init_t: float | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -89,8 +91,15 @@ class SessionEstimator:
         return self.tracker.search_region() if self.started else None
 
     # -- feeding ------------------------------------------------------------------
+    def _timestamp_initial(self, t: float) -> None:
+        """An initial position given without a time takes the time of the first input."""
+        if self.estimate is not None and self.estimate["source"] == "init" and self.estimate["t"] is None:
+            self.estimate["t"] = float(t)
+            self.init_t = float(t)
+
     def step(self, step: Step) -> dict[str, Any] | None:
         """Predict with one step; None (step dropped) before the session has a position."""
+        self._timestamp_initial(step.t)
         self.last_t = step.t
         if not self.started:
             return None
@@ -106,6 +115,7 @@ class SessionEstimator:
     ) -> dict[str, Any]:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on
         its first fix. ``walls_of(level)`` gives a floor's walls when the floor changes."""
+        self._timestamp_initial(scan.t)
         self.last_t = scan.t
         if not self.started:
             return self.start(fix.mean, fix.covariance, fix.floor, walls_of(fix.floor), scan.t, "scan")

@@ -48,6 +48,7 @@ class _Outcome:
     state: dict[str, Any]
     estimates: list[dict[str, Any]]
     crowd: list[tuple[dict[str, Any], Scan]]
+    init_t: float | None = None
 
 
 class SessionService:
@@ -135,7 +136,7 @@ class SessionService:
                 if repo.save_batch(
                     s, session_id, expected_last_seq=row.last_seq, seq=batch.seq, state=outcome.state,
                     answer=outcome.answer, first_idx=row.track_length,
-                    estimates=[{"seq": batch.seq, **e} for e in outcome.estimates],
+                    estimates=[{"seq": batch.seq, **e} for e in outcome.estimates], init_t=outcome.init_t,
                 ):
                     if outcome.crowd:
                         self._crowdsource(s, row.site_id, outcome.crowd)
@@ -176,6 +177,7 @@ class SessionService:
                 fix = self._fix(row, item, est, beacons)
             except ServiceError as exc:
                 skipped.append(SkippedScan(index=i, reason=_reason(exc)))
+                est._timestamp_initial(item.t)
                 est.last_t = item.t
                 continue
             cold = not est.started
@@ -198,7 +200,7 @@ class SessionService:
             applied_scans=applied_scans,
             skipped_scans=skipped,
         ).model_dump(mode="json")
-        return _Outcome(answer, est.to_dict(), estimates, crowd)
+        return _Outcome(answer, est.to_dict(), estimates, crowd, est.init_t)
 
     def _walls(self, site_id: int, level: int) -> list:
         with self.db.transaction() as s:
