@@ -11,6 +11,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StringConstraints,
+    field_validator,
     model_validator,
 )
 
@@ -216,13 +217,14 @@ class SessionIn(Strict):
     model_id: int | None = None
     initial: InitialIn | None = None
 
-    @model_validator(mode="after")
-    def _known_filter(self) -> SessionIn:
+    @field_validator("filter")
+    @classmethod
+    def _known_filter(cls, value: str) -> str:
         from server.estimation.tracking import tracker_names
 
-        if self.filter not in tracker_names():
-            raise ValueError(f"filter {self.filter!r} is not one of {tracker_names()}")
-        return self
+        if value not in tracker_names():
+            raise ValueError(f"filter {value!r} is not one of {tracker_names()}")
+        return value
 
 
 class StepIn(Strict):
