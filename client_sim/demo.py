@@ -27,7 +27,7 @@ FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
 
 async def run_demo(url: str, admin_key: str, device_key: str, phones: int, out_dir: Path, seed: int) -> Path:
     survey = await run_survey(url, admin_key, "open_room", scans_per_heading=3, seed=seed, train="knn",
-                              site_name=f"demo open room {seed}")
+                              site_name=f"demo open room {time.strftime('%Y-%m-%d %H:%M:%S')}")
     model = survey.get("model") or {}
     print(f"site {survey['site_id']}: {survey['accepted']} fingerprints at {survey['reference_points']} "
           f"reference points; model {model.get('id')} ({model.get('algorithm')}) is {model.get('status')}")

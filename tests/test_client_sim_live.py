@@ -19,3 +19,23 @@ def test_survey_creates_the_scenario_site_and_stores_every_scan(admin, live_serv
     assert [f["level"] for f in site["floors"]] == sorted({f.level for f in world.floors})
     points = admin.get(f"/api/v1/sites/{result['site_id']}/reference-points").json()
     assert {(p["x"], p["y"]) for p in points} == {(x, y) for x, y, _ in world.reference_points}
+
+
+def test_survey_then_track_phones_through_sessions(admin, live_server):
+    from client_sim.runs import run_track
+    from tests.conftest import DEVICE_KEY
+
+    survey = asyncio.run(run_survey(live_server.url, ADMIN_KEY, "open_room", scans_per_heading=2, seed=1, train="knn"))
+    assert survey["model"]["status"] == "ready"
+    result = asyncio.run(run_track(live_server.url, DEVICE_KEY, "open_room", survey["site_id"], phones=2,
+                                   filters=("skpf", "ekf"), seed=4))
+    for phone in result["phones"]:
+        assert "error" not in phone and phone["failed_posts"] == 0
+        batches = phone["batch_estimates"]
+        assert [b["t"] for b in batches] == sorted(b["t"] for b in batches)
+        track = phone["track"]
+        assert track[0]["source"] == "init" and {r["source"] for r in track[1:]} <= {"step", "scan"}
+        assert len(track) > len(batches)
+        mean = sum(r["error_m"] for r in track) / len(track)
+        pdr = sum(r["error_m"] for r in phone["pdr_only"]) / len(phone["pdr_only"])
+        assert mean < 3.0 and mean < pdr + 1.0, (phone["filter"], mean, pdr)
