@@ -79,6 +79,9 @@ class LocalizerClient:
     async def get_site(self, site_id) -> dict:
         return await self.request("GET", f"{API}/sites/{site_id}")
 
+    async def update_site_settings(self, site_id, settings: dict) -> dict:
+        return await self.request("PATCH", f"/api/v1/sites/{site_id}", {"settings": settings})
+
     async def delete_site(self, site_id) -> None:
         await self.request("DELETE", f"{API}/sites/{site_id}")
 

@@ -214,8 +214,12 @@ async def run_crowd(base_url: str, admin_key: str, device_key: str, scenario: Wo
     async with LocalizerClient(base_url, admin_key, transport=transport) as admin, \
             LocalizerClient(base_url, device_key, transport=transport) as device:
         if site_id is None:
-            site_id = (await admin.create_site(world.site_payload(f"{world.name}-crowd")))["id"]
-        out_rounds = []
+            site_id = (await admin.create_site(world.site_payload(f"{world.name}-crowd-{seed}")))["id"]
+        await admin.update_site_settings(site_id, {"crowdsourcing": True})
+        # No survey: the first fixes come from the path-loss model of the transmitters' known positions.
+        bootstrap = await admin.wait_model(site_id, (await admin.train_model(site_id, "propagation"))["id"])
+        out_rounds = [{"round": -1, "model": bootstrap, "site": await admin.get_site(site_id),
+                       "locate": await probe_locate(device, world, site_id, probes, seed * 1000 + 999)}]
         for r in tqdm(range(rounds), desc="crowd rounds", disable=not progress):
             plans = plan_phones(world, phones, [filter], seed * 1000 + r, wifi_hz, ble_hz, random_routes=True)
             results = await asyncio.gather(*(

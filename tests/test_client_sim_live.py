@@ -39,3 +39,20 @@ def test_survey_then_track_phones_through_sessions(admin, live_server):
         mean = sum(r["error_m"] for r in track) / len(track)
         pdr = sum(r["error_m"] for r in phone["pdr_only"]) / len(phone["pdr_only"])
         assert mean < 3.0 and mean < pdr + 1.0, (phone["filter"], mean, pdr)
+
+
+def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server):
+    from client_sim.runs import run_crowd
+    from tests.conftest import DEVICE_KEY
+
+    result = asyncio.run(run_crowd(live_server.url, ADMIN_KEY, DEVICE_KEY, "open_room", rounds=2, phones=3,
+                                   probes=8, filter="ekf", train="knn", seed=2))
+    bootstrap, *rounds = result["rounds"]
+    assert bootstrap["model"]["algorithm"] == "propagation" and bootstrap["model"]["status"] == "ready"
+    assert bootstrap["site"]["fingerprints"] == {"survey": 0, "crowd": 0}
+    assert bootstrap["site"]["settings"]["crowdsourcing"] is True
+    crowd = [r["site"]["fingerprints"]["crowd"] for r in rounds]
+    assert 0 < crowd[0] <= crowd[1]
+    assert all(r["sessions_ok"] == 3 for r in rounds)
+    assert rounds[-1]["model"]["status"] == "ready" and rounds[-1]["model"]["active"] is True
+    assert rounds[-1]["locate"]["answered"] == 8

@@ -11,7 +11,7 @@ import json
 import httpx
 
 from client_sim.report import write_report
-from client_sim.runs import make_batches, run_crowd, run_survey, run_track, survey_fingerprints
+from client_sim.runs import make_batches, run_survey, run_track, survey_fingerprints
 from client_sim.phone import simulate_phone
 from client_sim.world import open_room
 
@@ -141,17 +141,6 @@ def test_track_retries_failed_posts_with_the_same_seq(tmp_path):
     assert set(table["open_room"]) == {"skpf", "ekf", "pdr-only"}
     assert (tmp_path / "rep" / "cdf.png").stat().st_size > 1000
     assert (tmp_path / "rep" / "trajectory.png").exists()
-
-
-def test_crowd_opens_sessions_without_initial_and_probes_each_round():
-    fake = FakeServer()
-    res = asyncio.run(run_crowd("http://x", "admin", "device", "open_room", rounds=2, phones=2, probes=3,
-                                transport=httpx.MockTransport(fake.handler)))
-    opened = [r for r in fake.requests if r[1] == "/api/v1/sessions"]
-    assert len(opened) == 4 and all("initial" not in r[3] for r in opened)
-    assert all(r[2] == "Bearer device" for r in opened)
-    assert [r["locate"]["answered"] for r in res["rounds"]] == [3, 3]
-    assert all(r["model"]["status"] == "ready" for r in res["rounds"])
 
 
 def test_wrong_key_is_an_error_not_a_silent_pass():
