@@ -458,11 +458,13 @@ def list_models(s: Session, site_id: int) -> Sequence[Model]:
     return s.scalars(select(Model).where(Model.site_id == site_id).order_by(Model.id)).all()
 
 
-def serving_model(s: Session, site_id: int, model_id: int | None) -> tuple[int, str, str] | None:
-    """(id, algorithm, status) of ``model_id`` on the site, or of the site's active model."""
+def serving_model(s: Session, site_id: int, model_id: int | None) -> tuple[int, str, str, str | None] | None:
+    """(id, algorithm, status, artifact SHA-256) of ``model_id`` on the site, or of the site's active model."""
     chosen = Model.id == model_id if model_id is not None else Model.active.is_(True)
     row = s.execute(
-        select(Model.id, Model.algorithm, Model.status).where(Model.site_id == site_id, chosen)
+        select(Model.id, Model.algorithm, Model.status, ModelArtifact.sha256)
+        .outerjoin(ModelArtifact, ModelArtifact.model_id == Model.id)
+        .where(Model.site_id == site_id, chosen)
     ).first()
     return tuple(row) if row else None
 

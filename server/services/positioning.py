@@ -1,7 +1,8 @@
 """Locate: the site's active (or a chosen) model answers one scan.
 
-Trained models are loaded once per process into a small LRU cache keyed by model id
-(ids never change meaning, so no invalidation is needed); a query only asks the
+Trained models are loaded once per process into a small LRU cache keyed by the
+artifact's SHA-256 (content-addressed: a deleted model whose id is reused on SQLite can
+never answer for its successor, and nothing needs invalidating); a query only asks the
 database which model serves the site, never re-reads an artifact.
 """
 
@@ -33,31 +34,31 @@ class Located:
 
 
 class ModelCache:
-    """Loaded models by id, least recently used dropped first; loads are checksum-verified."""
+    """Loaded models by artifact SHA-256, least recently used dropped first; loads are checksum-verified."""
 
     def __init__(self, db: Database, size: int = 8):
         self._db = db
         self._size = size
-        self._models: OrderedDict[int, FingerprintModel] = OrderedDict()
+        self._models: OrderedDict[str, FingerprintModel] = OrderedDict()
         self._lock = threading.Lock()
         self.loads = 0
 
-    def get(self, model_id: int) -> FingerprintModel:
+    def get(self, model_id: int, sha256: str) -> FingerprintModel:
         with self._lock:
-            model = self._models.get(model_id)
+            model = self._models.get(sha256)
             if model is not None:
-                self._models.move_to_end(model_id)
+                self._models.move_to_end(sha256)
                 return model
             with self._db.transaction() as s:
                 artifact = repo.model_artifact(s, model_id)
-                if artifact is None:
-                    raise Conflict(f"model {model_id} has no stored artifact")
-                blob, sha256 = bytes(artifact.blob), artifact.sha256
+                if artifact is None or artifact.sha256 != sha256:
+                    raise Conflict(f"model {model_id} changed while it was being loaded; retry")
+                blob = bytes(artifact.blob)
             if checksum(blob) != sha256:
                 raise ArtifactError(f"model {model_id}: artifact does not match its recorded SHA-256")
             model = from_bytes(blob)
             self.loads += 1
-            self._models[model_id] = model
+            self._models[sha256] = model
             if len(self._models) > self._size:
                 self._models.popitem(last=False)
             return model
@@ -68,8 +69,8 @@ class Positioning:
         self._db = db
         self.cache = cache
 
-    def serving_model(self, site_id: int, model_id: int | None = None) -> tuple[int, str]:
-        """(id, algorithm) of the model that answers for the site: 404/409 when there is none."""
+    def serving_model(self, site_id: int, model_id: int | None = None) -> tuple[int, str, str]:
+        """(id, algorithm, artifact SHA-256) of the model that answers for the site: 404/409 when there is none."""
         with self._db.transaction() as s:
             found = repo.serving_model(s, site_id, model_id)
             if found is None:
@@ -78,10 +79,10 @@ class Positioning:
                 if model_id is not None:
                     raise NotFound(f"model {model_id} does not exist on site {site_id}")
                 raise Conflict(f"site {site_id} has no ready model: train one with POST /api/v1/sites/{site_id}/models")
-        found_id, algorithm, status = found
-        if status != "ready":
+        found_id, algorithm, status, sha256 = found
+        if status != "ready" or sha256 is None:
             raise Conflict(f"model {found_id} is {status}, not ready")
-        return found_id, algorithm
+        return found_id, algorithm, sha256
 
     def locate(
         self,
@@ -93,8 +94,8 @@ class Positioning:
         radius_m: float | None = None,
     ) -> Located:
         """A fix for one scan; ``near``/``radius_m`` restrict candidates around a previous estimate."""
-        found_id, algorithm = self.serving_model(site_id, model_id)
-        model = self.cache.get(found_id)
+        found_id, algorithm, sha256 = self.serving_model(site_id, model_id)
+        model = self.cache.get(found_id, sha256)
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)
         except UnknownTransmittersError:
