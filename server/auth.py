@@ -40,14 +40,21 @@ class Authenticator:
         self._bootstrap: dict[str, Scope] = {hash_key(k): "device" for k in settings.device_keys}
         self._bootstrap.update({hash_key(k): "admin" for k in settings.admin_keys})
 
-    def principal(self, key: str) -> Principal | None:
+    def bootstrap(self, key: str) -> Principal | None:
+        """A key from the settings (no database needed)."""
         digest = hash_key(key)
         scope = self._bootstrap.get(digest)
-        if scope is None:
-            with self._db.transaction() as s:
-                stored = repo.find_api_key(s, digest)
-                scope = stored.scope if stored is not None else None
         return Principal(scope, digest) if scope is not None else None
+
+    def stored(self, key: str) -> Principal | None:
+        """A key created from the CLI and not revoked (one indexed query)."""
+        digest = hash_key(key)
+        with self._db.transaction() as s:
+            found = repo.find_api_key(s, digest)
+            return Principal(found.scope, digest) if found is not None else None
+
+    def principal(self, key: str) -> Principal | None:
+        return self.bootstrap(key) or self.stored(key)
 
 
 def create_key(db: Database, name: str, scope: Scope) -> tuple[int, str]:
