@@ -15,8 +15,6 @@ import argparse
 import asyncio
 import csv
 import io
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -29,25 +27,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from server.estimation.fingerprint import from_bytes  # noqa: E402
+from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.upload import upload  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
-
-
-def start_server(database_url: str, port: int, workers: int) -> subprocess.Popen:
-    env = {**os.environ, "LOCALIZER_DATABASE_URL": database_url, "LOCALIZER_ADMIN_KEYS": ADMIN,
-           "LOCALIZER_DEVICE_KEYS": DEVICE}
-    cmd = [sys.executable, "-m", "server", "serve", "--port", str(port), "--workers", str(workers),
-           "--log-level", "warning"]
-    process = subprocess.Popen(cmd, cwd=ROOT, env=env)
-    for _ in range(600):
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
-                return process
-        except httpx.TransportError:
-            time.sleep(0.1)
-    process.kill()
-    raise SystemExit("server did not start")
 
 
 def query_scans(path: Path, n: int, seed: int = 0) -> list[dict[str, float]]:
@@ -94,7 +77,8 @@ def main() -> None:
     scans = query_scans(args.data, args.requests)
     with tempfile.TemporaryDirectory() as tmp:
         url = f"sqlite:///{tmp}/bench.db"
-        server = start_server(url, args.port, args.workers)
+        server = start_server(args.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": ADMIN,
+                                           "LOCALIZER_DEVICE_KEYS": DEVICE}, args.workers)
         base = f"http://127.0.0.1:{args.port}"
         admin = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=60)
         try:
@@ -117,8 +101,7 @@ def main() -> None:
             blob = _artifact(url, model["id"])
         finally:
             admin.close()
-            server.terminate()
-            server.wait()
+            stop_server(server)
 
     direct = from_bytes(blob)
     t0 = time.perf_counter()

@@ -13,8 +13,6 @@ from __future__ import annotations
 import argparse
 import csv
 import io
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -25,24 +23,10 @@ import httpx
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.upload import upload  # noqa: E402
 
 KEY = "benchmark-admin-key"
-
-
-def start_server(database_url: str, port: int) -> subprocess.Popen:
-    env = {**os.environ, "LOCALIZER_DATABASE_URL": database_url, "LOCALIZER_ADMIN_KEYS": KEY}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "server", "serve", "--port", str(port), "--log-level", "warning"], cwd=ROOT, env=env
-    )
-    for _ in range(300):
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
-                return process
-        except httpx.TransportError:
-            time.sleep(0.1)
-    process.kill()
-    raise SystemExit("server did not start")
 
 
 def main() -> None:
@@ -59,7 +43,7 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         url = args.database_url or f"sqlite:///{tmp}/bench.db"
-        server = start_server(url, args.port)
+        server = start_server(args.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": KEY})
         base = f"http://127.0.0.1:{args.port}"
         try:
             results = []
@@ -75,8 +59,7 @@ def main() -> None:
                     raise SystemExit(out.getvalue())
                 results.append((name, seconds, out.getvalue().strip()))
         finally:
-            server.terminate()
-            server.wait()
+            stop_server(server)
 
     print(f"file: {args.data} ({rows} rows); database: {'SQLite' if not args.database_url else args.database_url.split(':')[0]}")
     print(f"baseline (csv.reader over the file, same process): {baseline:.2f} s")

@@ -13,47 +13,16 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import secrets
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-import httpx
-
 from .report import write_report
 from .runs import run_survey, run_track
+from .server_process import free_port, start_server, stop_server
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(port: int, env: dict[str, str]) -> subprocess.Popen:
-    """``python -m server serve`` as a child process; returns once ``/healthz`` answers."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "server", "serve", "--port", str(port), "--log-level", "warning"],
-        cwd=ROOT, env={**os.environ, **env},
-    )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise SystemExit(f"the server exited with code {process.returncode}")
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
-                return process
-        except httpx.TransportError:
-            time.sleep(0.2)
-    process.kill()
-    raise SystemExit("the server did not come up within 120 s")
 
 
 async def run_demo(url: str, admin_key: str, device_key: str, phones: int, out_dir: Path, seed: int) -> Path:
@@ -97,6 +66,5 @@ def main(args) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        server.terminate()
-        server.wait(timeout=30)
+        stop_server(server)
     return 0

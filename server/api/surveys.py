@@ -8,7 +8,7 @@ from fastapi import APIRouter, Header, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import DB, Admin
-from server.schemas import SurveyIn, SurveyResult
+from server.schemas import SurveyResult
 from server.services.surveys import ingest_survey
 
 router = APIRouter(prefix="/api/v1/sites", tags=["surveys"])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from client_sim.radio import RadioModel, walls_crossed
-from client_sim.world import Floor, RadioParams, Transmitter, World, corridor_loop, open_room, wifi
+from client_sim.world import Floor, RadioParams, Transmitter, World, corridor_loop, open_room
 
 TX = Transmitter("wifi:02:00:00:00:00:01", "wifi", 0, 0.0, 0.0, -40.0, 2.5)
 
