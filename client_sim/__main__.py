@@ -207,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
     p.add_argument("--initial", choices=("yes", "no", "both"), default="yes",
                    help="open sessions at the first waypoint, without it, or both")
+    p.add_argument("--fix-noise", default="auto",
+                   help="auto: cov_floor_m from a walk-wise cross-validation on the map walks; "
+                        "model: the model's own covariances; a number: that cov_floor_m (m)")
     p.add_argument("--concurrency", type=int, default=4, help="test walks replayed at once")
     p.add_argument("--url", help="use this server instead of starting one (then give the keys)")
     p.add_argument("--admin-key", default=_env("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"))

@@ -25,12 +25,14 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .http_client import ApiError, LocalizerClient
+from .pdr.step_length import weinberg
 from .msft import (Walk, beacon_scans, calibration_window, dead_reckon, detect_steps, errors_against,
                    fit_rotation_scale, make_batches, read_walk, segment_displacements, steps_from_events,
                    summarise, survey_rows, wifi_scans)
@@ -92,10 +94,20 @@ def _circular_median(deg: list[float]) -> float:
     return float(np.degrees(grid[np.argmin(cost)]))
 
 
-def site_calibration(maps: list[Prepared]) -> dict:
+def _robust_std(x) -> float:
+    x = np.asarray(x, dtype=float)
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+
+def site_calibration(maps: list[Prepared], min_segment_m: float = 3.0) -> dict:
     """Heading offset and Weinberg k from the map walks: per walk a least-squares fit
     over all its waypoint segments, then the median across walks (a few walks have a
-    heading filter that went astray; the median ignores them)."""
+    heading filter that went astray; the median ignores them).
+
+    The step noise the phone declares comes from the same walks: ``heading_std_deg``
+    is the robust spread of the per-segment heading residual after the offset, and
+    ``length_std_m`` the robust spread of the per-segment length ratio times the
+    median step length (segments shorter than ``min_segment_m`` are skipped)."""
     offsets, ks = [], []
     for p in maps:
         pdr, true = segment_displacements(p.events, p.walk.waypoints, 1.0)
@@ -104,11 +116,25 @@ def site_calibration(maps: list[Prepared]) -> dict:
             offsets.append(off)
             ks.append(k)
     if not offsets:
-        return {"heading_offset_deg": 0.0, "weinberg_k": 0.45, "walks": 0}
-    off = _circular_median(offsets)
+        return {"heading_offset_deg": 0.0, "weinberg_k": 0.45, "heading_std_deg": 8.0, "length_std_m": 0.1,
+                "walks": 0}
+    off, k = _circular_median(offsets), float(np.median(ks))
     spread = np.degrees(np.abs(np.angle(np.exp(1j * np.radians(np.asarray(offsets) - off)))))
-    return {"heading_offset_deg": round(off, 2), "weinberg_k": round(float(np.median(ks)), 4), "walks": len(offsets),
-            "offset_abs_dev_p50_deg": round(float(np.median(spread)), 1),
+    h_res, l_res, lengths = [], [], []
+    for p in maps:
+        pdr, true = segment_displacements(p.events, p.walk.waypoints, k)
+        for a, b in zip(pdr, true):
+            lb, la = float(np.linalg.norm(b)), float(np.linalg.norm(a))
+            if lb < min_segment_m or la == 0:
+                continue
+            d = math.degrees(math.atan2(a[0], a[1])) + off - math.degrees(math.atan2(b[0], b[1]))
+            h_res.append((d + 180) % 360 - 180)
+            l_res.append(la / lb)
+        lengths.extend(weinberg(p.events.swing, np.zeros_like(p.events.swing), k))
+    return {"heading_offset_deg": round(off, 2), "weinberg_k": round(k, 4), "walks": len(offsets),
+            "heading_std_deg": round(_robust_std(h_res), 1) if h_res else 8.0,
+            "length_std_m": round(_robust_std(l_res) * float(np.median(lengths)), 3) if l_res else 0.1,
+            "segments": len(h_res), "offset_abs_dev_p50_deg": round(float(np.median(spread)), 1),
             "k_range": [round(float(min(ks)), 3), round(float(max(ks)), 3)]}
 
 
@@ -120,21 +146,79 @@ def walk_calibration(p: Prepared, min_distance_m: float = 10.0) -> dict:
 
 
 # --------------------------------------------------------------------------- HTTP parts
-async def build_map(admin: LocalizerClient, maps: list[Prepared], floor_info: dict, algorithm: str,
-                    params: dict | None, kinds: list[str], site_name: str, chunk: int = 2000) -> dict:
-    rows = [r for p in maps for r in survey_rows(p.walk, p.scans, device="msft-map")]
-    rows = [{**r, "rss": {k: v for k, v in r["rss"].items() if k.split(":")[0] in kinds}} for r in rows]
-    rows = [r for r in rows if r["rss"]]
-    site = await admin.create_site({"name": site_name, "floors": [
+async def _new_site(admin: LocalizerClient, name: str, floor_info: dict) -> dict:
+    return await admin.create_site({"name": f"{name} {secrets.token_hex(3)}", "floors": [
         {"level": 0, "name": "F1", "width_m": floor_info.get("width"), "height_m": floor_info.get("height")}]})
+
+
+def _map_rows(maps: list[Prepared], kinds: list[str]) -> list[dict]:
+    rows = [r for p in maps for r in survey_rows(p.walk, p.scans, device=f"msft-{p.walk.name}")]
+    rows = [{**r, "rss": {k: v for k, v in r["rss"].items() if k.split(":")[0] in kinds}} for r in rows]
+    return [r for r in rows if r["rss"]]
+
+
+async def _upload_and_train(admin: LocalizerClient, site_id, rows: list[dict], algorithm: str, params: dict | None,
+                            kinds: list[str], chunk: int = 2000) -> tuple[int, dict]:
     accepted = 0
     for i in range(0, len(rows), chunk):
-        accepted += (await admin.upload_survey(site["id"], rows[i:i + chunk]))["accepted"]
-    model = await admin.train_model(site["id"], algorithm, params, kinds=kinds)
-    model = await admin.wait_model(site["id"], model["id"], timeout_s=600)
+        accepted += (await admin.upload_survey(site_id, rows[i:i + chunk]))["accepted"]
+    model = await admin.train_model(site_id, algorithm, params, kinds=kinds)
+    model = await admin.wait_model(site_id, model["id"], timeout_s=600)
     if model.get("status") != "ready":
         raise SystemExit(f"training failed: {model.get('error')}")
-    return {"site_id": site["id"], "fingerprints": accepted, "model": model}
+    return accepted, model
+
+
+async def map_cross_validation(admin: LocalizerClient, maps: list[Prepared], floor_info: dict, algorithm: str,
+                               params: dict | None, kinds: list[str], folds: int = 4) -> dict:
+    """Fingerprint error on *unseen walks* from the map walks alone: ``folds`` temporary
+    sites, each trained without every ``folds``-th map walk, which is then located
+    scan by scan. Returns the error summary and the ratio error / model sigma."""
+    errors, sigmas = [], []
+    for k in range(folds):
+        held = [p for i, p in enumerate(maps) if i % folds == k]
+        rest = [p for i, p in enumerate(maps) if i % folds != k]
+        if not held or not rest:
+            continue
+        site = await _new_site(admin, f"msft cv {k}", floor_info)
+        await _upload_and_train(admin, site["id"], _map_rows(rest, kinds), algorithm, params, kinds)
+        for p in held:
+            rows = await fingerprint_only(admin, site["id"], p)
+            errors += [r["error_m"] for r in rows]
+            sigmas += [r["sigma_m"] for r in rows]
+        # The fold sites are kept: deleting the newest site lets SQLite hand its id (and
+        # its models' ids) to the next one, and the server's per-process model cache,
+        # keyed by model id, would then answer with the deleted model.
+    e = np.asarray(errors)
+    return {**summarise(e), "sigma_p50": round(float(np.median(sigmas)), 2) if sigmas else None}
+
+
+async def build_map(admin: LocalizerClient, maps: list[Prepared], floor_info: dict, algorithm: str,
+                    params: dict | None, kinds: list[str], site_name: str, fix_noise: str = "auto") -> dict:
+    """Upload the map walks' scans as a survey (each fingerprint's ``device`` is its
+    walk), train, wait.
+
+    ``fix_noise="auto"``: a walk-wise cross-validation on the map walks
+    (:func:`map_cross_validation`) measures how far a fix for an unseen walk is off;
+    its median error ``e50`` sets ``cov_floor_m = e50 / 1.177`` (the σ of a Rayleigh
+    distribution with that median) for the model that is trained. The fixes'
+    covariances — the trackers' R — then say how good a fix for a new walk really
+    is, instead of only the spread of its neighbours. ``"model"``: the model's own
+    covariances. A number: that ``cov_floor_m``."""
+    rows = _map_rows(maps, kinds)
+    out: dict = {}
+    params = dict(params or {})
+    if fix_noise == "auto":
+        cv = await map_cross_validation(admin, maps, floor_info, algorithm, params, kinds)
+        out["cross_validation"] = cv
+        if cv["p50"]:
+            params["cov_floor_m"] = round(cv["p50"] / math.sqrt(2 * math.log(2)), 2)
+    elif fix_noise != "model":
+        params["cov_floor_m"] = float(fix_noise)
+    site = await _new_site(admin, site_name, floor_info)
+    accepted, model = await _upload_and_train(admin, site["id"], rows, algorithm, params or None, kinds)
+    return {**out, "site_id": site["id"], "fingerprints": accepted, "model": model,
+            "cov_floor_m": params.get("cov_floor_m")}
 
 
 async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> list[dict]:
@@ -148,8 +232,11 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
             if exc.status == 422:  # nothing in this scan is known to the model
                 continue
             raise
-        track.append((s["t"], fix["x"], fix["y"]))
-    return errors_against(p.walk, track)
+        c = fix["covariance"]
+        track.append((s["t"], fix["x"], fix["y"], math.sqrt(max(c[0][0] + c[1][1], 0.0) / 2)))
+    rows = errors_against(p.walk, [r[:3] for r in track])
+    sigma = {round(float(r[0]), 3): round(r[3], 2) for r in track}
+    return [{**r, "sigma_m": sigma.get(r["t"])} for r in rows]
 
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
@@ -185,6 +272,7 @@ class Options:
     max_age_s: float = 3.0
     interval_s: float = 2.0
     initial: str = "yes"  # "yes" | "no" | "both"
+    fix_noise: str = "auto"  # "auto" | "model" (see build_map)
     concurrency: int = 4
 
 
@@ -195,7 +283,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
     tests = [prepare(f, opt.max_age_s, ble) for f in test_files]
     site_cal = site_calibration(maps)
     progress(f"site calibration from {site_cal['walks']} map walks: heading offset "
-             f"{site_cal['heading_offset_deg']}°, Weinberg k {site_cal['weinberg_k']}")
+             f"{site_cal['heading_offset_deg']}°, Weinberg k {site_cal['weinberg_k']}; declared step noise "
+             f"{site_cal['length_std_m']} m, {site_cal['heading_std_deg']}°")
     floor_info = {}
     fi = Path(data_dir) / "floor_info.json"
     if fi.exists():
@@ -204,10 +293,14 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
     kw = {"transport": transport} if transport else {}
     async with LocalizerClient(url, admin_key, **kw) as admin, LocalizerClient(url, device_key, **kw) as device:
         fmap = await build_map(admin, maps, floor_info, opt.algorithm, opt.params, list(opt.kinds),
-                               f"msft site1 F1 ({len(maps)} map walks)")
+                               f"msft site1 F1 ({len(maps)} map walks)", opt.fix_noise)
         m = fmap["model"]
-        progress(f"site {fmap['site_id']}: {fmap['fingerprints']} fingerprints, model {m['id']} {m['algorithm']} "
-                 f"ready (held-out metrics {m.get('metrics')})")
+        cv = fmap.get("cross_validation")
+        if cv:
+            progress(f"map cross-validation (unseen map walks): fingerprint error mean {cv['mean']} m, "
+                     f"p50 {cv['p50']} m, p90 {cv['p90']} m; model sigma p50 {cv['sigma_p50']} m")
+        progress(f"site {fmap['site_id']}: {fmap['fingerprints']} fingerprints; model {m['id']} {m['algorithm']} "
+                 f"ready, cov_floor_m {fmap.get('cov_floor_m') or 'auto (model)'}")
         sem = asyncio.Semaphore(opt.concurrency)
         sessions_ok = True
 
@@ -223,7 +316,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             else:
                 cal = {k: site_cal[k] for k in ("heading_offset_deg", "weinberg_k")}
                 eval_from = w.t_start
-            steps = steps_from_events(p.events, cal["weinberg_k"], cal["heading_offset_deg"])
+            noise = {"length_std_m": site_cal["length_std_m"], "heading_std_deg": site_cal["heading_std_deg"]}
+            steps = steps_from_events(p.events, cal["weinberg_k"], cal["heading_offset_deg"], **noise)
             methods: dict[str, list[dict]] = {}
             async with sem:
                 methods["pdr-only"] = errors_against(w, dead_reckon(steps, w.waypoints[0, 1:], w.t_start)[1:])
@@ -262,8 +356,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
     return {"data_dir": str(data_dir), "map_walks": [f.stem for f in map_files],
             "test_walks": [f.stem for f in test_files], "options": opt.__dict__ | {"filters": list(opt.filters),
                                                                                     "kinds": list(opt.kinds)},
-            "site_calibration": site_cal, "map": {"site_id": fmap["site_id"], "fingerprints": fmap["fingerprints"],
-                                                  "model": fmap["model"]},
+            "site_calibration": site_cal, "map": fmap,
             "table": table, "per_walk_mean": per_walk, "walks": walks}
 
 
@@ -301,7 +394,8 @@ def main(a) -> int:
     opt = Options(filters=tuple(x for x in a.filters.split(",") if x), algorithm=a.algorithm,
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
-                  max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency)
+                  max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
+                  fix_noise=a.fix_noise)
     server, tmp = None, None
     url, admin_key, device_key = a.url, a.admin_key, a.device_key
     if not url:
