@@ -196,6 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--map-walks", help="comma list of indices or file names (default: every walk not tested)")
     p.add_argument("--test-walks", help="comma list of indices or file names (default: every --every-th from 1)")
     p.add_argument("--every", type=int, default=4, help="default split: walks 1, 1+N, 1+2N... are test walks")
+    p.add_argument("--folds", type=int, help="K-fold: walk i is a test walk in fold i %% K (all walks tested; "
+                                             "overrides --map-walks/--test-walks)")
     p.add_argument("--filters", default="skpf,ekf,ukf,kf,pf,fkf")
     p.add_argument("--algorithm", default="knn")
     p.add_argument("--params", help="model params as JSON, e.g. '{\"k\": 7}'")

@@ -248,8 +248,8 @@ def steps_from_events(ev: StepEvents, weinberg_k: float, heading_offset_deg: flo
     """Steps in the site frame: Weinberg length with ``weinberg_k``, heading + offset."""
     lengths = weinberg(ev.swing, np.zeros_like(ev.swing), weinberg_k)
     heads = (ev.heading_deg + heading_offset_deg) % 360.0
-    return [PdrStep(float(t), float(l), float(h), length_std_m, heading_std_deg)
-            for t, l, h in zip(ev.t, lengths, heads)]
+    return [PdrStep(float(t), float(length), float(h), length_std_m, heading_std_deg)
+            for t, length, h in zip(ev.t, lengths, heads)]
 
 
 def dead_reckon(steps: list[PdrStep], start_xy, t0: float) -> np.ndarray:

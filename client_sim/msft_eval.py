@@ -349,14 +349,29 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
 
         walks = await asyncio.gather(*(one_walk(p) for p in tests))
 
-    names = list(dict.fromkeys(k for w in walks for k in w["methods"]))
-    table = {k: summarise(r["error_m"] for w in walks for r in w["methods"].get(k, [])) for k in names}
-    per_walk = {w["walk"]: {k: summarise(r["error_m"] for r in v)["mean"] for k, v in w["methods"].items()}
-                for w in walks}
+    table, per_walk = tabulate(walks)
     return {"data_dir": str(data_dir), "map_walks": [f.stem for f in map_files],
             "test_walks": [f.stem for f in test_files], "options": opt.__dict__ | {"filters": list(opt.filters),
                                                                                     "kinds": list(opt.kinds)},
             "site_calibration": site_cal, "map": fmap,
+            "table": table, "per_walk_mean": per_walk, "walks": walks}
+
+
+def tabulate(walks: list[dict]) -> tuple[dict, dict]:
+    names = list(dict.fromkeys(k for w in walks for k in w["methods"]))
+    table = {k: summarise(r["error_m"] for w in walks for r in w["methods"].get(k, [])) for k in names}
+    per_walk = {w["walk"]: {k: summarise(r["error_m"] for r in v)["mean"] for k, v in w["methods"].items()}
+                for w in walks}
+    return table, per_walk
+
+
+def combine_folds(results: list[dict]) -> dict:
+    """One result from several folds: every walk is a test walk once."""
+    walks = [w | {"fold": i} for i, r in enumerate(results) for w in r["walks"]]
+    table, per_walk = tabulate(walks)
+    return {"data_dir": results[0]["data_dir"], "folds": [{k: r[k] for k in (
+        "map_walks", "test_walks", "site_calibration", "map")} for r in results],
+            "test_walks": [w for r in results for w in r["test_walks"]], "options": results[0]["options"],
             "table": table, "per_walk_mean": per_walk, "walks": walks}
 
 
@@ -383,14 +398,19 @@ def main(a) -> int:
     files = walk_files(a.data_dir)
     if not files:
         raise SystemExit(f"no walk files under {a.data_dir}")
-    map_default, test_default = default_split(len(files), a.every)
-    test_files = select_walks(files, a.test_walks, test_default)
-    if a.map_walks:
-        map_files = select_walks(files, a.map_walks, [])
+    if a.folds:
+        splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds])
+                  for k in range(a.folds)]
     else:
-        map_files = [f for f in files if f not in test_files]
-    if set(map_files) & set(test_files):
-        print("warning: some walks are both map and test walks", flush=True)
+        map_default, test_default = default_split(len(files), a.every)
+        test_files = select_walks(files, a.test_walks, test_default)
+        if a.map_walks:
+            map_files = select_walks(files, a.map_walks, [])
+        else:
+            map_files = [f for f in files if f not in test_files]
+        if set(map_files) & set(test_files):
+            print("warning: some walks are both map and test walks", flush=True)
+        splits = [(map_files, test_files)]
     opt = Options(filters=tuple(x for x in a.filters.split(",") if x), algorithm=a.algorithm,
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
@@ -407,8 +427,14 @@ def main(a) -> int:
         url = f"http://127.0.0.1:{port}"
         print(f"server started at {url} (SQLite in {tmp.name})", flush=True)
     try:
-        result = asyncio.run(run_msft(url, admin_key, device_key, Path(a.data_dir), map_files, test_files, opt,
-                                      progress=lambda s: print(s, flush=True)))
+        results = []
+        for k, (map_files, test_files) in enumerate(splits):
+            if len(splits) > 1:
+                print(f"--- fold {k + 1}/{len(splits)}: {len(map_files)} map walks, {len(test_files)} test walks",
+                      flush=True)
+            results.append(asyncio.run(run_msft(url, admin_key, device_key, Path(a.data_dir), map_files, test_files,
+                                                opt, progress=lambda s: print(s, flush=True))))
+        result = results[0] if len(results) == 1 else combine_folds(results)
     finally:
         if server is not None:
             stop_server(server)
