@@ -193,3 +193,21 @@ def test_heading_filter_does_not_take_a_moving_start_as_gyro_bias():
     out = GyroMagKalman().run(ImuData(t, acc, gyro, mag))
     final = (out[-1] - heading[-1] + 180) % 360 - 180
     assert abs(final) < 3.0  # the old "first second is still" rule ended ~88° off here
+
+
+def test_tables_from_walk_results():
+    from client_sim.msft_eval import combine_folds, markdown, tabulate
+
+    def walk(name, pdr, fp):
+        return {"walk": name, "methods": {"pdr-only": [{"t": 0, "error_m": e} for e in pdr],
+                                          "fingerprint-only": [{"t": 0, "error_m": e} for e in fp]}}
+    walks = [walk("a", [1, 3], [10]), walk("b", [2], [20, 30])]
+    table, per_walk = tabulate(walks)
+    assert table["pdr-only"]["mean"] == 2.0 and table["fingerprint-only"]["n"] == 3
+    assert per_walk == {"a": {"pdr-only": 2.0, "fingerprint-only": 10.0}, "b": {"pdr-only": 2.0,
+                                                                              "fingerprint-only": 25.0}}
+    fold = {"data_dir": "d", "map_walks": [], "test_walks": ["a"], "site_calibration": {}, "map": {}, "options": {}}
+    both = combine_folds([fold | {"walks": walks[:1]}, fold | {"walks": walks[1:], "test_walks": ["b"]}])
+    assert both["table"] == table and [w["fold"] for w in both["walks"]] == [0, 1]
+    md = markdown(both)
+    assert md.splitlines()[2].startswith("| pdr-only | 3 | 2.0 |")  # best mean first
