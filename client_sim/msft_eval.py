@@ -380,6 +380,14 @@ def markdown(result: dict) -> str:
     for k, s in sorted(result["table"].items(), key=lambda kv: (kv[1]["mean"] is None, kv[1]["mean"] or 0)):
         lines.append(f"| {k} | {s['n']} | {s['mean']} | {s['p50']} | {s['p90']} | {s['max']} |")
     names = list(result["table"])
+    per = result["per_walk_mean"]
+    lines += ["", "Walks (of %d) where a method's mean error is below PDR alone / fingerprinting alone:" % len(per), ""]
+    for k in names:
+        if k in ("pdr-only", "fingerprint-only"):
+            continue
+        vs = [sum(1 for row in per.values() if row.get(k) is not None and row.get(base) is not None
+                  and row[k] < row[base]) for base in ("pdr-only", "fingerprint-only")]
+        lines.append(f"- {k}: {vs[0]} / {vs[1]}")
     lines += ["", "Mean error per test walk (m):", "", "| walk | " + " | ".join(names) + " |",
               "|---|" + "---|" * len(names)]
     for walk, row in result["per_walk_mean"].items():
