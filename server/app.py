@@ -8,7 +8,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import health, locate, models, sites, surveys
+from server.api import health, locate, models, sessions, sites, surveys
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
@@ -16,6 +16,7 @@ from server.db import Database
 from server.errors import ServiceError
 from server.schemas import SurveyIn
 from server.services.positioning import ModelCache, Positioning
+from server.services.sessions import SessionService
 from server.services.training import TrainingWorker
 
 
@@ -48,7 +49,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, sites, surveys, models, locate):
+    app.state.sessions = SessionService(app.state.db, app.state.positioning)
+    for module in (health, sites, surveys, models, locate, sessions):
         app.include_router(module.router)
     _document_survey_body(app)
     return app

@@ -20,8 +20,11 @@ from server.tables import (
     Model,
     ModelArtifact,
     ReferencePoint,
+    SessionBatch,
     Site,
     SurveyUpload,
+    TrackEstimate,
+    TrackingSession,
     Transmitter,
 )
 
@@ -256,6 +259,174 @@ def _ensure_transmitters(s: Session, site_id: int, tx_ids: set[str]) -> None:
             insert(Transmitter),
             [{"site_id": site_id, "tx_id": tx, "kind": tx.split(":", 1)[0]} for tx in new],
         )
+
+
+# --- tracking sessions ----------------------------------------------------------------------
+
+
+def floor_walls(s: Session, site_id: int, level: int) -> list[list[float]]:
+    """The wall segments of one floor of a site ([] when the floor is not declared)."""
+    return s.scalar(select(Floor.walls).where(Floor.site_id == site_id, Floor.level == level)) or []
+
+
+def site_settings(s: Session, site_id: int) -> dict | None:
+    """A site's settings, or None when the site does not exist."""
+    row = s.execute(select(Site.settings).where(Site.id == site_id)).first()
+    return None if row is None else dict(row[0] or {})
+
+
+def model_site(s: Session, model_id: int) -> int | None:
+    return s.scalar(select(Model.site_id).where(Model.id == model_id))
+
+
+def add_tracking_session(
+    s: Session,
+    session_id: str,
+    site_id: int,
+    owner_key: str,
+    filter: str,
+    model_id: int | None,
+    state: dict,
+    estimates: Sequence[dict],
+) -> TrackingSession:
+    row = TrackingSession(
+        id=session_id,
+        site_id=site_id,
+        owner_key=owner_key,
+        filter=filter,
+        model_id=model_id,
+        status="open",
+        state=state,
+        last_seq=-1,
+        track_length=len(estimates),
+    )
+    s.add(row)
+    s.flush()
+    add_track_estimates(s, session_id, 0, estimates)
+    return row
+
+
+def get_tracking_session(s: Session, session_id: str) -> TrackingSession | None:
+    """A plain read (no lock): ``save_batch`` checks that nothing changed since."""
+    return s.scalar(select(TrackingSession).where(TrackingSession.id == session_id).execution_options(populate_existing=True))
+
+
+def batch_answer(s: Session, session_id: str, seq: int) -> dict | None:
+    return s.scalar(select(SessionBatch.answer).where(SessionBatch.session_id == session_id, SessionBatch.seq == seq))
+
+
+def save_batch(
+    s: Session,
+    session_id: str,
+    *,
+    expected_last_seq: int,
+    seq: int,
+    state: dict,
+    answer: dict,
+    first_idx: int,
+    estimates: Sequence[dict],
+    init_t: float | None = None,
+) -> bool:
+    """Compare-and-set: store the batch's outcome only if the session is still open at ``expected_last_seq``.
+
+    The UPDATE comes first, so it takes the row lock (PostgreSQL) or the write lock
+    (SQLite) before anything else is written; a concurrent feeder of the same session
+    finds ``last_seq`` moved and gets ``False`` (nothing written; it re-reads and retries).
+    """
+    result = s.execute(
+        update(TrackingSession)
+        .where(
+            TrackingSession.id == session_id,
+            TrackingSession.last_seq == expected_last_seq,
+            TrackingSession.status == "open",
+        )
+        .values(state=state, last_seq=seq, track_length=first_idx + len(estimates))
+        .execution_options(synchronize_session=False)
+    )
+    if result.rowcount != 1:
+        return False
+    s.execute(insert(SessionBatch), [{"session_id": session_id, "seq": seq, "answer": answer}])
+    add_track_estimates(s, session_id, first_idx, estimates)
+    if init_t is not None:  # the initial estimate takes the time of the session's first input
+        s.execute(
+            update(TrackEstimate)
+            .where(TrackEstimate.session_id == session_id, TrackEstimate.idx == 0, TrackEstimate.t.is_(None))
+            .values(t=init_t)
+            .execution_options(synchronize_session=False)
+        )
+    return True
+
+
+def add_track_estimates(s: Session, session_id: str, first_idx: int, estimates: Sequence[dict]) -> None:
+    if estimates:
+        s.execute(
+            insert(TrackEstimate),
+            [{"session_id": session_id, "idx": first_idx + i, **e} for i, e in enumerate(estimates)],
+        )
+
+
+def track_estimates(s: Session, session_id: str) -> Sequence[TrackEstimate]:
+    return s.scalars(select(TrackEstimate).where(TrackEstimate.session_id == session_id).order_by(TrackEstimate.idx)).all()
+
+
+def close_tracking_session(s: Session, session_id: str) -> bool:
+    """Close an open session; False when it was already closed."""
+    result = s.execute(
+        update(TrackingSession)
+        .where(TrackingSession.id == session_id, TrackingSession.status == "open")
+        .values(status="closed", closed_at=datetime.now(timezone.utc))
+        .execution_options(synchronize_session=False)
+    )
+    return result.rowcount == 1
+
+
+def nearby_crowd_points(s: Session, site_id: int, floor: int, x: float, y: float, radius_m: float) -> Sequence[Fingerprint]:
+    """Crowd fingerprints of a floor in the box of ±radius around (x, y), locked for the merge."""
+    return s.scalars(
+        select(Fingerprint)
+        .where(
+            Fingerprint.site_id == site_id,
+            Fingerprint.source == "crowd",
+            Fingerprint.floor == floor,
+            Fingerprint.x.between(x - radius_m, x + radius_m),
+            Fingerprint.y.between(y - radius_m, y + radius_m),
+        )
+        .order_by(Fingerprint.id)
+        .with_for_update()
+    ).all()
+
+
+def add_crowd_fingerprint(s: Session, site_id: int, point: dict, heading_deg: float | None, t: float | None, device: str | None) -> None:
+    s.execute(
+        insert(Fingerprint),
+        [
+            {
+                "site_id": site_id,
+                "source": "crowd",
+                "floor": point["floor"],
+                "x": point["x"],
+                "y": point["y"],
+                "heading_deg": None if heading_deg is None else heading_deg % 360.0,
+                "t": t,
+                "device": device,
+                "rss": point["rss"],
+                "samples": point["count"],
+            }
+        ],
+    )
+
+
+def update_crowd_fingerprint(s: Session, fingerprint_id: int, point: dict) -> None:
+    s.execute(
+        update(Fingerprint)
+        .where(Fingerprint.id == fingerprint_id)
+        .values(x=point["x"], y=point["y"], rss=point["rss"], samples=point["count"])
+        .execution_options(synchronize_session=False)
+    )
+
+
+def set_site_settings(s: Session, site_id: int, settings: dict) -> bool:
+    return s.execute(update(Site).where(Site.id == site_id).values(settings=settings)).rowcount == 1
 
 
 def _chunks(items: list[int], size: int) -> Iterable[list[int]]:

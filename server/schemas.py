@@ -11,6 +11,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StringConstraints,
+    field_validator,
     model_validator,
 )
 
@@ -90,7 +91,18 @@ class SiteIn(Strict):
         ids = [t.id for t in self.transmitters]
         if len(ids) != len(set(ids)):
             raise ValueError("transmitter ids must be unique")
+        undeclared = undeclared_floors(set(levels), self.transmitters)
+        if undeclared:
+            raise ValueError(undeclared)
         return self
+
+
+def undeclared_floors(declared: set[int], transmitters: list[TransmitterIn]) -> str | None:
+    """A site that declares floors accepts transmitters on those floors only; None when all are fine."""
+    if not declared:
+        return None
+    bad = [t.id for t in transmitters if t.floor is not None and t.floor not in declared]
+    return f"transmitter(s) {', '.join(bad[:10])} on a floor the site does not declare {sorted(declared)}" if bad else None
 
 
 class FloorOut(BaseModel):
@@ -116,9 +128,20 @@ class FingerprintCounts(BaseModel):
     crowd: int
 
 
+class SiteSettings(Strict):
+    crowdsourcing: bool | None = Field(
+        None, description="Confident tracking-session estimates with their scans become crowd fingerprints."
+    )
+
+
+class SitePatch(Strict):
+    settings: SiteSettings
+
+
 class SiteOut(BaseModel):
     id: int
     name: str
+    settings: dict = Field({}, description="Site settings, e.g. {\"crowdsourcing\": true}.")
     floors: list[FloorOut]
     transmitters: int
     reference_points: int
@@ -158,6 +181,109 @@ class SurveyResult(BaseModel):
     new_reference_points: int = Field(description="Reference points the upload created.")
     skipped: int = Field(0, description="Rows that heard nothing (UJIIndoorLoc format only).")
     dry_run: bool = False
+
+
+# --- tracking sessions -------------------------------------------------------------
+
+#: most steps, and most scans, in one batch (413 beyond)
+MAX_BATCH_STEPS = 1000
+MAX_BATCH_SCANS = 1000
+
+Cov2 = tuple[tuple[Metres, Metres], tuple[Metres, Metres]]
+
+
+def _positive_definite(cov: Cov2 | None) -> Cov2 | None:
+    if cov is None:
+        return cov
+    (a, b), (c, d) = cov
+    if abs(b - c) > 1e-9 * max(1.0, abs(b), abs(c)):
+        raise ValueError("covariance must be symmetric")
+    if not (a > 0 and a * d - b * c > 0):
+        raise ValueError("covariance must be positive definite")
+    return cov
+
+
+class InitialIn(Strict):
+    x: Metres
+    y: Metres
+    floor: Level
+    heading_deg: Degrees | None = None
+    covariance: Annotated[Cov2, AfterValidator(_positive_definite)] | None = None
+
+
+class SessionIn(Strict):
+    site_id: int
+    filter: str = Field(description="A tracker name: skpf, ekf, ukf, kf, pf or fkf.")
+    model_id: int | None = None
+    initial: InitialIn | None = None
+
+    @field_validator("filter")
+    @classmethod
+    def _known_filter(cls, value: str) -> str:
+        from server.estimation.tracking import tracker_names
+
+        if value not in tracker_names():
+            raise ValueError(f"filter {value!r} is not one of {tracker_names()}")
+        return value
+
+
+class StepIn(Strict):
+    t: Seconds
+    length_m: Annotated[float, Field(ge=0, le=5, allow_inf_nan=False)]
+    heading_deg: Degrees
+    length_std_m: Annotated[float, Field(gt=0, le=5, allow_inf_nan=False)] | None = None
+    heading_std_deg: Annotated[float, Field(gt=0, le=180, allow_inf_nan=False)] | None = None
+
+
+class ScanIn(Strict):
+    t: Seconds
+    rss: Rss
+    heading_deg: Degrees | None = None
+
+
+class BatchIn(Strict):
+    seq: Annotated[int, Field(ge=0, le=2**31 - 1)]
+    steps: list[StepIn] = []
+    scans: list[ScanIn] = []
+
+
+class EstimateOut(BaseModel):
+    t: float | None
+    x: float
+    y: float
+    floor: int
+    covariance: list[list[float]]
+    source: Literal["step", "scan", "init"]
+
+
+class SkippedScan(BaseModel):
+    index: int = Field(description="Index of the scan in the batch's `scans`.")
+    reason: str
+
+
+class BatchResult(BaseModel):
+    seq: int
+    estimate: EstimateOut | None = Field(
+        description="The session's estimate after the batch; null only while a session without `initial` "
+        "has not yet had a scan that gave a fix."
+    )
+    applied_steps: int
+    applied_scans: int
+    skipped_scans: list[SkippedScan] = Field(
+        [], description="Scans that gave no fix (no ready model, no known transmitter), with why."
+    )
+
+
+class SessionOut(BaseModel):
+    id: str
+    site_id: int
+    filter: str
+    model_id: int | None
+    status: Literal["open", "closed"]
+    estimate: EstimateOut | None = None
+    created_at: datetime
+    last_seq: int = Field(description="Highest batch seq applied (-1: none yet).")
+    track_length: int = Field(description="Estimates in the track.")
 
 
 # --- service ---------------------------------------------------------------------------

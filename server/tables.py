@@ -199,3 +199,35 @@ class TrackingSession(Base):
     state: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     last_seq: Mapped[int] = mapped_column(Integer, default=-1)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    #: estimates in the track (the next estimate's idx); last_seq is the compare-and-set version
+    track_length: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class SessionBatch(Base):
+    """One applied batch of a tracking session with the answer it got, so a replay gets it again."""
+
+    __tablename__ = "session_batches"
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("tracking_sessions.id", ondelete="CASCADE"), primary_key=True
+    )
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True)
+    answer: Mapped[dict[str, Any]] = mapped_column()
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class TrackEstimate(Base):
+    """One estimate of a session's track (after a step, a scan, or the initial position)."""
+
+    __tablename__ = "track_estimates"
+    session_id: Mapped[str] = mapped_column(
+        ForeignKey("tracking_sessions.id", ondelete="CASCADE"), primary_key=True
+    )
+    idx: Mapped[int] = mapped_column(Integer, primary_key=True)
+    seq: Mapped[int | None] = mapped_column(Integer)  # the batch that produced it (None: initial)
+    t: Mapped[float | None] = mapped_column(Float)
+    x: Mapped[float] = mapped_column(Float)
+    y: Mapped[float] = mapped_column(Float)
+    floor: Mapped[int] = mapped_column(Integer)
+    covariance: Mapped[list[Any]] = mapped_column()
+    source: Mapped[str] = mapped_column(String(10))  # "step" | "scan" | "init"

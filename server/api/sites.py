@@ -13,8 +13,10 @@ from server.schemas import (
     ReferencePointOut,
     SiteIn,
     SiteOut,
+    SitePatch,
     TransmitterList,
     TransmitterOut,
+    undeclared_floors,
 )
 from server.tables import Site, Transmitter
 
@@ -32,6 +34,7 @@ def _site_out(site: Site, counts: dict[str, int]) -> SiteOut:
     return SiteOut(
         id=site.id,
         name=site.name,
+        settings=dict(site.settings or {}),
         floors=[FloorOut.model_validate(f, from_attributes=True) for f in site.floors],
         transmitters=counts["transmitters"],
         reference_points=counts["reference_points"],
@@ -71,6 +74,16 @@ def get_site(site_id: int, db: DB, _: Admin) -> SiteOut:
         return _site_out(site, repo.site_counts(s, [site_id])[site_id])
 
 
+@router.patch("/{site_id}", response_model=SiteOut)
+def patch_site(site_id: int, body: SitePatch, db: DB, _: Admin) -> SiteOut:
+    """Change site settings (given keys are merged into the stored ones)."""
+    with db.transaction() as s:
+        site = existing_site(s, site_id)
+        repo.set_site_settings(s, site_id, {**(site.settings or {}), **body.settings.model_dump(exclude_unset=True)})
+        s.refresh(site)
+        return _site_out(site, repo.site_counts(s, [site_id])[site_id])
+
+
 @router.delete("/{site_id}", status_code=status.HTTP_204_NO_CONTENT)
 def delete_site(site_id: int, db: DB, _: Admin) -> Response:
     with db.transaction() as s:
@@ -87,6 +100,8 @@ def put_transmitters(site_id: int, body: TransmitterList, db: DB, _: Admin) -> l
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "transmitter ids must be unique in one request")
     with db.transaction() as s:
         existing_site(s, site_id)
+        if problem := undeclared_floors(repo.floor_levels(s, site_id), body):
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, problem)
         repo.upsert_transmitters(s, site_id, body)
         return [_transmitter_out(t) for t in repo.list_transmitters(s, site_id)]
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 WALLS = [[0, 0, 10, 0], [10, 0, 10, 8]]
@@ -79,13 +81,33 @@ def test_put_transmitters_upserts_by_id(admin):
         ({"name": "x", "transmitters": [{"id": "wifi:ap", "kind": "ble"}]}, "does not match kind"),
         ({"name": "x", "transmitters": [{"id": "wifi:ap", "kind": "wifi", "x": 1}]}, "both x and y"),
         ({"name": "x", "unknown": 1}, "unknown"),
+        ({"name": "x", "floors": [{"level": 0}], "transmitters": [{"id": "wifi:ap", "kind": "wifi", "floor": 2}]},
+         "does not declare"),
+        ({"name": "x", "transmitters": [{"id": "wifi:ap", "kind": "wifi", "x": float("nan"), "y": 1}]}, "x"),
     ],
 )
 def test_invalid_site_is_422_naming_the_problem(admin, snapshot, body, field):
     before = snapshot()
-    answer = admin.post("/api/v1/sites", json=body)
+    raw = json.dumps(body)  # allows NaN, which httpx's json= refuses to send
+    answer = admin.post("/api/v1/sites", content=raw, headers={"Content-Type": "application/json"})
     assert answer.status_code == 422
     assert field in answer.text
+    assert snapshot() == before
+
+
+def test_put_transmitters_rejects_bad_rows_and_stores_nothing(admin, snapshot):
+    site = admin.post("/api/v1/sites", json=SITE).json()
+    before = snapshot()
+    url = f"/api/v1/sites/{site['id']}/transmitters"
+    ok = {"id": "wifi:fine", "kind": "wifi"}
+    for body, field in [
+        ([ok, {"id": "wifi:aa:bb", "kind": "wifi", "tx_power_dbm": 99}], "1.tx_power_dbm"),
+        ([ok, {"id": "ble:Upper", "kind": "ble"}], "1.id"),
+        ([ok, {"id": "wifi:ap9", "kind": "wifi", "floor": 5}], "does not declare"),
+        ([ok, ok], "unique"),
+    ]:
+        answer = admin.put(url, json=body)
+        assert answer.status_code == 422 and field in answer.text, answer.text
     assert snapshot() == before
 
 

@@ -94,7 +94,8 @@ def test_read_uji_ble(tmp_path):
     (tmp_path / "dep" / "lib.csv").write_text("id,x,y\n23,0.5,0.5\n24,5.0,5.0\n")
     fs = read_uji_ble(tmp_path)
     assert fs.tx_ids == ["ble:lib23", "ble:lib24"] and len(fs) == 2 and fs.meta["skipped"] == 1
-    assert list(fs.device) == [1, 2] and list(fs.label) == ["p001", "p002"]
+    assert list(fs.device) == [1, 2] and list(fs.user) == [2, 3]
+    assert len(fs.reference_points()) == 2  # grouped by position
 
 
 def test_evaluate_cli_prints_table(tmp_path, capsys, site_and_survey):

@@ -158,3 +158,28 @@ def test_registry_rejects_unknown_names():
     m = make_model("knn", {"k": 5}, use_heading=True, kinds=["wifi"])
     assert m.k == 5 and m.use_heading and m.kinds == ["wifi"]
     assert {"nbc", "knn", "svm", "kde", "tkbe", "propagation"} <= set(ALGORITHMS)
+
+
+@pytest.mark.parametrize("clf", ["svc", "trees"])
+def test_dedicated_floor_classifier(clf, site, survey):
+    model = KNNModel(floor_classifier=clf).fit(survey)
+    qs = _queries(site, n_per_rp=1, seed=12)
+    fixes = model.locate_many([q[4] for q in qs])
+    assert all(fx.floor == q[3] for fx, q in zip(fixes, qs))
+    assert all(c.floor == fx.floor for fx in fixes for c in fx.candidates)
+    with pytest.raises(ValueError):
+        KNNModel(floor_classifier="magic")
+
+
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_tiny_sites_train_and_answer(name):
+    # one scan per floor, no headings: every algorithm must still train and answer
+    rows = [{"x": 1, "y": 1, "floor": 0, "rss": {"wifi:a": -50}},
+            {"x": 5, "y": 1, "floor": 1, "rss": {"wifi:a": -80, "ble:b": -60}}]
+    fs = FingerprintSet.from_rows(rows)
+    params = {"time_budget_s": 1.0} if name == "svm" else {}
+    for uh in (False, True):
+        m = make_model(name, params, use_heading=uh).fit(fs)
+        fix = m.locate({"wifi:a": -52.0}, heading_deg=30.0)
+        assert fix.floor == 0 and (fix.x, fix.y) == (1.0, 1.0)
+        assert m.locate({"ble:b": -61.0, "wifi:a": -79.0}).floor == 1

@@ -64,13 +64,18 @@ class FingerprintModel:
 
     kinds: ["wifi"], ["ble"] or None (= all) — transmitters used, by id prefix.
     use_heading: add the walking heading as a feature (sin/cos).
-    missing: "powed" (default) or "floor" — representation of not-heard transmitters.
+    missing: "floor" (default) or "powed" — representation of not-heard transmitters
+        (see features.py; "floor" measured better on UJIIndoorLoc).
     floor_dbm: the floor value / weakest reading kept (default −110 dBm).
     heading_weight: scale of the heading feature against RSS features; None = auto
         (half the typical RSS distance between scans of one reference point).
     cov_floor_m: std (m) added to both axes of every covariance; None = auto (half the
         median spacing of neighbouring reference points, at least 0.5 m).
     n_candidates: how many candidates a Fix lists.
+    floor_classifier: "svc" (default): a dedicated RBF SVC over (building, floor) picks
+        the floor first and the model then only considers that floor's reference
+        points (skipped when the site has one floor); "trees": extra trees instead;
+        None: the floor holding most of the model's own posterior mass wins.
     """
 
     name = "base"
@@ -81,11 +86,12 @@ class FingerprintModel:
         *,
         kinds: Sequence[str] | None = None,
         use_heading: bool = False,
-        missing: str = "powed",
+        missing: str = "floor",
         floor_dbm: float = -110.0,
         heading_weight: float | None = None,
         cov_floor_m: float | None = None,
         n_candidates: int = 5,
+        floor_classifier: str | None = "svc",
     ):
         self.kinds = None if kinds is None else list(kinds)
         self.use_heading = bool(use_heading)
@@ -94,6 +100,9 @@ class FingerprintModel:
         self.heading_weight = heading_weight
         self.cov_floor_m = cov_floor_m
         self.n_candidates = int(n_candidates)
+        if floor_classifier not in (None, "svc", "trees"):
+            raise ValueError("floor_classifier must be None, 'svc' or 'trees'")
+        self.floor_classifier = floor_classifier
         RssEncoder(missing, floor_dbm)  # validate early
 
     # ---- parameters --------------------------------------------------------------
@@ -146,11 +155,28 @@ class FingerprintModel:
         self.n_fingerprints_ = len(fs)
         data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
         self._fit(X, H, data)
+        self.floor_clf_ = self._fit_floor_classifier(X, H, data.row_group)
         self.fit_time_s_ = time.perf_counter() - t0
         return self
 
     def _fit(self, X: np.ndarray, H: np.ndarray | None, data: TrainingData) -> None:
         raise NotImplementedError
+
+    def _floor_design(self, X, H):
+        return X if H is None else np.hstack([X, self.heading_weight_ * H])
+
+    def _fit_floor_classifier(self, X, H, row_group):
+        if self.floor_classifier is None or len(np.unique(row_group)) < 2:
+            return None
+        if self.floor_classifier == "svc":
+            from sklearn.svm import SVC
+
+            clf = SVC(C=10.0, gamma="scale")
+        else:
+            from sklearn.ensemble import ExtraTreesClassifier
+
+            clf = ExtraTreesClassifier(n_estimators=100, min_samples_leaf=1, random_state=0)
+        return clf.fit(self._floor_design(X, H), row_group)
 
     def _auto_cov_floor(self) -> float:
         spacings = []
@@ -251,6 +277,11 @@ class FingerprintModel:
         Q = self.encoder_.transform(R)
         Hq = self._headings(heading_deg, n)
         mask = self._near_mask(near, radius_m, n)
+        clf = getattr(self, "floor_clf_", None)
+        if clf is not None and n:
+            g = clf.predict(self._floor_design(Q, Hq))
+            on_floor = self.rp_group_[None, :] == g[:, None]
+            mask = on_floor if mask is None else np.where((mask & on_floor).any(1)[:, None], mask & on_floor, on_floor)
         parts = []
         for s in range(0, n, chunk):
             sl = slice(s, s + chunk)

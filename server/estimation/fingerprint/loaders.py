@@ -107,8 +107,10 @@ def read_uji_ble(directory) -> FingerprintSet:
     """UJI BLE RSS database, library zone: rss/lib_rss.csv (24 beacons, 100 = not
     heard), rss/lib_crd.csv (x, y metres), rss/lib_ids.csv (phone·10⁷ + power·10⁶ +
     campaign·10⁵ + point·100 + sample). Beacon columns are ``ble:lib<id>`` with ids from
-    dep/lib.csv in order (23..46) when present. One floor (0). Label = point number;
-    device = phone; user = campaign. Rows that hear nothing are skipped."""
+    dep/lib.csv in order (23..46) when present. One floor (0). No label: point numbers
+    are per campaign (point 1 of campaign 2 and of campaign 3 are different places), so
+    reference points are grouped by position; device = phone; user = campaign. Rows
+    that hear nothing are skipped."""
     rss = _read_matrix(os.path.join(directory, "rss", "lib_rss.csv"))
     crd = _read_matrix(os.path.join(directory, "rss", "lib_crd.csv"))
     ids = np.loadtxt(os.path.join(directory, "rss", "lib_ids.csv"), dtype=np.int64, ndmin=1)
@@ -120,11 +122,9 @@ def read_uji_ble(directory) -> FingerprintSet:
     keep = ~np.all(np.isnan(rss), axis=1)
     phone = ids // 10**7
     campaign = ids // 10**5 % 10
-    point = ids // 100 % 1000
-    labels = np.array([f"p{p:03d}" for p in point], dtype=object)
     fs = FingerprintSet(
         rss=rss[keep], tx_ids=names, x=crd[keep, 0], y=crd[keep, 1], floor=np.zeros(keep.sum(), int),
-        label=labels[keep], user=campaign[keep], device=phone[keep],
+        user=campaign[keep], device=phone[keep],
     )
     fs.meta["skipped"] = int((~keep).sum())
     return fs

@@ -11,8 +11,9 @@ Log-distance path loss ``RSS = R0 − 10·γ·log10(d)`` (d in metres, ≥ 1 m; 
   centroid of its strongest readings), else
 - a pooled fit over all transmitters, else the defaults.
 
-Locating one scan: floor = power-weighted vote of the strongest heard transmitters'
-floors; ranges from the inverted path loss (horizontal, after removing the floor
+Locating one scan: floor = the (building, floor) classifier's answer when the model
+was fitted on fingerprints of several floors (``floor_classifier``, as for every
+model), else a power-weighted vote of the strongest heard transmitters' floors; ranges from the inverted path loss (horizontal, after removing the floor
 height difference); then least-squares multilateration (relative range residuals,
 soft-L1 loss) or the weighted path-loss centroid (weights 1/d). With fingerprints the
 estimate is turned into a posterior over the reference points of that floor like every
@@ -201,8 +202,9 @@ class PropagationModel(FingerprintModel):
         self._check_fitted()
         return [t for t in rss if t in self.tx_index_ and not np.isnan(self.tx_pos_[self.tx_index_[t], 0])]
 
-    def estimate(self, rss_row: np.ndarray):
-        """One (m,) RSS row → (xy, cov, building, floor) or None when no anchor is heard."""
+    def estimate(self, rss_row: np.ndarray, group: tuple[int, int] | None = None):
+        """One (m,) RSS row → (xy, cov, building, floor) or None when no anchor is heard.
+        ``group`` = (building, floor) imposes the floor instead of the transmitter vote."""
         ok = np.flatnonzero(~np.isnan(rss_row) & ~np.isnan(self.tx_pos_[:, 0]))
         if len(ok) == 0:
             return None
@@ -212,7 +214,7 @@ class PropagationModel(FingerprintModel):
         for j, w in zip(ok[:3], power[:3]):
             key = (int(self.tx_building_[j]), int(self.tx_floor_[j]))
             votes[key] = votes.get(key, 0.0) + w
-        building, floor = max(votes, key=votes.get)
+        building, floor = max(votes, key=votes.get) if group is None else group
         d = rss_to_distance(rss_row[ok], self.r0_[ok], self.gamma_[ok])
         dz = (self.tx_floor_[ok] - floor) * self.floor_height_m
         r = np.sqrt(np.maximum(d**2 - dz**2, 0.25))
@@ -231,7 +233,12 @@ class PropagationModel(FingerprintModel):
         self._check_fitted()
         R = self._as_matrix(rss)
         n = len(R)
-        est = [self.estimate(R[i]) for i in range(n)]
+        clf = getattr(self, "floor_clf_", None)
+        groups = [None] * n
+        if clf is not None and n:
+            g = clf.predict(self._floor_design(self.encoder_.transform(R), self._headings(heading_deg, n)))
+            groups = [(int(self.group_building_[k]), int(self.group_floor_[k])) for k in g]
+        est = [self.estimate(R[i], groups[i]) for i in range(n)]
         parts = []
         for i, e in enumerate(est):
             if e is None:  # nothing usable heard: centre of everything known, huge covariance

@@ -32,6 +32,7 @@ class SVMModel(FingerprintModel):
 
     def __init__(self, C: float | None = None, gamma: float | None = None, time_budget_s: float = 120.0,
                  cv_rows: int = 2000, seed: int = 0, **common):
+        common.setdefault("floor_classifier", None)  # has its own floor logic
         super().__init__(**common)
         self.C = C
         self.gamma = gamma
@@ -94,10 +95,10 @@ class SVMModel(FingerprintModel):
         idx = self._subsample(len(Z), rng)
         Zs, ys = Z[idx], y[idx]
         counts = np.bincount(ys)
-        n_splits = 3 if counts[counts > 0].min() >= 3 else 2
-        folds = list((StratifiedKFold(n_splits, shuffle=True, random_state=self.seed) if counts[counts > 0].min() >= n_splits
-                      else KFold(n_splits, shuffle=True, random_state=self.seed)).split(Zs, ys))
         best, best_acc = grid[len(grid) // 2], -1.0
+        if counts[counts > 0].min() < 3:  # too few scans per floor to cross-validate
+            return best
+        folds = list(StratifiedKFold(3, shuffle=True, random_state=self.seed).split(Zs, ys))
         for c, g in grid:
             if time.perf_counter() > deadline:
                 break

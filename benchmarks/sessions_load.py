@@ -1,0 +1,192 @@
+"""Many phones feeding tracking sessions at once, against a real server process.
+
+    python benchmarks/sessions_load.py --phones 200 --seconds 30
+    python benchmarks/sessions_load.py --phones 1000 --seconds 60 --workers 2
+
+Starts ``python -m server serve`` on a fresh SQLite file (or ``--database-url``), creates
+a synthetic site (survey + a trained knn model), opens one session per phone with a
+start position, then every phone posts one batch per second (2 steps + 1 RSS scan) for
+``--seconds``, phones staggered over the first second. A post that fails at the
+transport level is retried with the same ``seq`` (the server answers a replay from its
+store). Prints the batch latency percentiles and the achieved rate, then checks the
+stored data: every session has exactly one stored answer per posted seq and exactly
+3 track estimates per batch (+1 initial) — no lost and no doubled batches.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+from sqlalchemy import create_engine, text
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from server.estimation.fingerprint.synthetic import make_site  # noqa: E402
+
+ADMIN, DEVICE = "bench-admin", "bench-device"
+API = "/api/v1"
+
+
+def start_server(database_url: str, port: int, workers: int) -> subprocess.Popen:
+    env = {**os.environ, "LOCALIZER_DATABASE_URL": database_url, "LOCALIZER_ADMIN_KEYS": ADMIN,
+           "LOCALIZER_DEVICE_KEYS": DEVICE}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "server", "serve", "--port", str(port), "--workers", str(workers),
+         "--log-level", "warning"], cwd=ROOT, env=env,
+    )
+    for _ in range(300):
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
+                return process
+        except httpx.TransportError:
+            pass
+        time.sleep(0.1)
+    process.kill()
+    raise SystemExit("server did not start")
+
+
+def prepare_site(base: str, synth) -> int:
+    with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=120) as c:
+        site = c.post(f"{API}/sites", json={"name": "bench", "floors": [{"level": 0}, {"level": 1}],
+                                            "transmitters": synth.transmitters}).json()
+        rows = synth.survey(scans_per_rp=6, seed=1).to_rows()
+        for row in rows:
+            row.pop("building", None)
+        assert c.post(f"{API}/sites/{site['id']}/surveys", json={"fingerprints": rows}).status_code == 201
+        model = c.post(f"{API}/sites/{site['id']}/models", json={"algorithm": "knn", "params": {"k": 3}}).json()
+        deadline = time.monotonic() + 300
+        while model["status"] not in ("ready", "failed") and time.monotonic() < deadline:
+            time.sleep(0.2)
+            model = c.get(f"{API}/sites/{site['id']}/models/{model['id']}").json()
+        if model["status"] != "ready":
+            raise SystemExit(f"model did not train: {model}")
+        return site["id"]
+
+
+async def phone(client: httpx.AsyncClient, site_id: int, synth, i: int, seconds: int, filter: str,
+                start_at: float, latencies: list, failures: list) -> tuple[str, int]:
+    rng = np.random.default_rng(i)
+    x, y = float(rng.uniform(0, 12)), float(rng.uniform(0, 8))
+    heading = float(rng.uniform(0, 360))
+    r = await client.post(f"{API}/sessions", json={"site_id": site_id, "filter": filter,
+                                                   "initial": {"x": x, "y": y, "floor": 0}})
+    r.raise_for_status()
+    sid = r.json()["id"]
+    loop = asyncio.get_running_loop()
+    t, ok = 0.0, 0
+    for seq in range(seconds):
+        await asyncio.sleep(max(0.0, start_at + seq - loop.time()))
+        steps = []
+        for _ in range(2):
+            t += 0.5
+            if not (0 <= x + 0.7 * math.sin(math.radians(heading)) <= 12 and 0 <= y + 0.7 * math.cos(math.radians(heading)) <= 8):
+                heading = (heading + 180) % 360
+            x += 0.7 * math.sin(math.radians(heading))
+            y += 0.7 * math.cos(math.radians(heading))
+            steps.append({"t": t, "length_m": 0.7, "heading_deg": heading})
+        body = {"seq": seq, "steps": steps, "scans": [{"t": t + 0.01, "rss": synth.scan(x, y, 0, None, rng, 2.0)}]}
+        for attempt in range(5):
+            started = loop.time()
+            try:
+                r = await client.post(f"{API}/sessions/{sid}/batches", json=body)
+            except httpx.TransportError as exc:
+                failures.append(f"{sid} seq {seq}: retry after {type(exc).__name__}")
+                await asyncio.sleep(0.2 * (attempt + 1))
+                continue
+            if r.status_code == 200:
+                latencies.append(loop.time() - started)
+                ok += 1
+                break
+            failures.append(f"{sid} seq {seq}: {r.status_code} {r.text[:200]}")
+            if r.status_code < 500:
+                break
+            await asyncio.sleep(0.2 * (attempt + 1))
+    return sid, ok
+
+
+async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str):
+    limits = httpx.Limits(max_connections=phones, max_keepalive_connections=phones)
+    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, timeout=60,
+                                 limits=limits) as client:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time() + 2.0
+        latencies, failures = [], []
+        began = time.perf_counter()
+        sessions = await asyncio.gather(*[
+            phone(client, site_id, synth, i, seconds, filter, t0 + i / phones, latencies, failures)
+            for i in range(phones)
+        ])
+        elapsed = time.perf_counter() - began
+    return sessions, latencies, failures, elapsed
+
+
+def check_store(database_url: str, sessions: list[tuple[str, int]]) -> list[str]:
+    """Exactly one stored answer per batch answered 200 and 3 estimates per batch (+1 initial)."""
+    engine = create_engine(database_url)
+    problems = []
+    with engine.connect() as conn:
+        answers = dict(conn.execute(text("SELECT session_id, count(*) FROM session_batches GROUP BY session_id")).all())
+        estimates = dict(conn.execute(text("SELECT session_id, count(*) FROM track_estimates GROUP BY session_id")).all())
+        last = dict(conn.execute(text("SELECT id, last_seq FROM tracking_sessions")).all())
+    engine.dispose()
+    for sid, n in sessions:
+        if answers.get(sid, 0) != n or estimates.get(sid, 0) != 1 + 3 * n:
+            problems.append(f"{sid}: {answers.get(sid, 0)} answers, {estimates.get(sid, 0)} estimates, "
+                            f"last_seq {last.get(sid)} for {n} batches answered 200")
+    return problems
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--phones", type=int, default=200)
+    parser.add_argument("--seconds", type=int, default=30, help="batches per phone (one a second)")
+    parser.add_argument("--filter", default="skpf")
+    parser.add_argument("--workers", type=int, default=1, help="server processes")
+    parser.add_argument("--database-url", help="default: a new SQLite file")
+    parser.add_argument("--port", type=int, default=8793)
+    args = parser.parse_args()
+
+    synth = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
+    with tempfile.TemporaryDirectory() as tmp:
+        url = args.database_url or f"sqlite:///{Path(tmp) / 'bench.db'}"
+        server = start_server(url, args.port, args.workers)
+        try:
+            base = f"http://127.0.0.1:{args.port}"
+            site_id = prepare_site(base, synth)
+            sessions, lat, failures, elapsed = asyncio.run(
+                run(base, site_id, synth, args.phones, args.seconds, args.filter))
+        finally:
+            server.terminate()
+            server.wait()
+        lat_ms = np.array(lat) * 1000
+        n = len(lat_ms)
+        print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
+              f"{url.split(':')[0]}): {n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
+              f"(offered {args.phones}/s)")
+        if n:
+            print(f"batch latency ms: p50 {np.percentile(lat_ms, 50):.1f}  p90 {np.percentile(lat_ms, 90):.1f}  "
+                  f"p99 {np.percentile(lat_ms, 99):.1f}  max {lat_ms.max():.1f}")
+        print(f"failed or retried posts: {len(failures)}")
+        for f in failures[:5]:
+            print("  ", f)
+        problems = check_store(url, sessions)
+        print(f"stored data: {'OK, no lost or doubled batches' if not problems else f'{len(problems)} sessions wrong'}")
+        for p in problems[:5]:
+            print("  ", p)
+        if problems:
+            raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+"""SessionEstimator: stored and restored between any two inputs, it gives exactly what an
+uninterrupted estimator gives (so a session may move between server processes)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from server.estimation.session import Beacon, SessionEstimator, multilateration_fix, time_order
+from server.estimation.tracking import tracker_names
+from server.estimation.types import Fix, Scan, Step
+
+BEACONS = {
+    "ble:b1": Beacon("ble:b1", 5.0, 0.0, 0, -59.0, 2.0),
+    "wifi:a": Beacon("wifi:a", 0.0, 0.0, 0),
+    "wifi:b": Beacon("wifi:b", 10.0, 0.0, 0),
+    "wifi:c": Beacon("wifi:c", 0.0, 10.0, 0),
+}
+
+
+def inputs():
+    rng = np.random.default_rng(1)
+    out = []
+    for i in range(30):
+        out.append(("step", Step(t=i * 0.5, length_m=0.7, heading_deg=90.0)))
+        if i % 3 == 2:
+            x = 0.7 * (i + 1)
+            fix = Fix(x + rng.normal(0, 0.5), rng.normal(0, 0.5), 0, np.eye(2) * 0.5)
+            rss = {"ble:b1": -59.0 - 20 * np.log10(max(abs(x - 5.0), 0.5)), "wifi:a": -60.0}
+            out.append(("scan", (Scan(t=i * 0.5 + 0.1, rss=rss), fix)))
+    return out
+
+
+def feed(est: SessionEstimator, items) -> list[dict]:
+    out = []
+    for kind, item in items:
+        if kind == "step":
+            out.append(est.step(item))
+        else:
+            scan, fix = item
+            out.append(est.scan(scan, fix, BEACONS, lambda level: []))
+    return out
+
+
+@pytest.mark.parametrize("name", tracker_names())
+def test_restored_estimator_continues_exactly(name):
+    items = inputs()
+    straight = SessionEstimator(name, seed=7)
+    straight.start([0.0, 0.0], None, 0, [], None, "init")
+    expected = feed(straight, items)
+
+    resumed = SessionEstimator(name, seed=7)
+    resumed.start([0.0, 0.0], None, 0, [], None, "init")
+    got = []
+    for k in range(0, len(items), 4):  # store (through JSON) and restore every 4 inputs
+        resumed = SessionEstimator.from_dict(json.loads(json.dumps(resumed.to_dict())))
+        got += feed(resumed, items[k:k + 4])
+    assert got == expected
+    assert expected[-1]["x"] == pytest.approx(0.7 * 30, abs=3.0)
+
+
+def test_steps_before_the_first_fix_are_dropped_and_the_first_scan_starts():
+    est = SessionEstimator("kf", seed=1)
+    assert est.step(Step(0.0, 0.7, 0.0)) is None and est.estimate is None
+    e = est.scan(Scan(1.0, {"wifi:a": -50.0}), Fix(3.0, 4.0, 2, np.eye(2)), {}, lambda level: [])
+    assert e["source"] == "scan" and (e["x"], e["y"], e["floor"]) == (3.0, 4.0, 2)
+
+
+def test_floor_change_needs_three_fixes_and_loads_the_new_walls():
+    est = SessionEstimator("pf", seed=1)
+    est.start([0.0, 0.0], None, 0, [], None, "init")
+    walls_asked = []
+
+    def walls_of(level):
+        walls_asked.append(level)
+        return [[-1.0, 5.0, 1.0, 5.0]]
+
+    for i in range(3):
+        e = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), {}, walls_of)
+    assert e["floor"] == 1 and walls_asked == [1]
+    assert est.tracker.walls.tolist() == [[-1.0, 5.0, 1.0, 5.0]]
+
+
+def test_landmark_snap_moves_onto_the_beacon():
+    est = SessionEstimator("kf", seed=1)
+    est.start([20.0, 20.0], None, 0, [], None, "init")
+    far = Fix(20.0, 20.0, 0, np.eye(2) * 100.0)
+    e = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, BEACONS, lambda level: [])
+    assert (e["x"], e["y"]) == pytest.approx((5.0, 0.0))
+
+
+def test_time_order_is_stable_with_steps_first_at_equal_times():
+    steps = [Step(2.0, 0.7, 0.0), Step(1.0, 0.7, 0.0)]
+    scans = [Scan(1.0, {"wifi:a": -50.0})]
+    assert [(k, i) for k, i, _ in time_order(steps, scans)] == [("step", 1), ("scan", 0), ("step", 0)]
+
+
+def test_multilateration_fix_from_three_anchors():
+    rss = {k: -45.0 - 25 * np.log10(np.hypot(b.x - 3.0, b.y - 4.0)) for k, b in BEACONS.items() if k.startswith("wifi")}
+    fix = multilateration_fix(rss, BEACONS)
+    assert fix.floor == 0 and np.hypot(fix.x - 3.0, fix.y - 4.0) < 0.5
+    assert multilateration_fix({"wifi:unknown": -50.0}, BEACONS) is None
