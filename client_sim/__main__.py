@@ -115,6 +115,12 @@ def cmd_demo(a) -> None:
     sys.exit(demo(a))
 
 
+def cmd_msft(a) -> None:
+    from .msft_eval import main as msft
+
+    sys.exit(msft(a))
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="client_sim", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -184,6 +190,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--once", action="store_true", help="stop the server after the demo instead of serving on")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("msft", help="real-data evaluation on the Microsoft site-1 F1 walks (map + replay)")
+    p.add_argument("data_dir", help="msft_site1_f1 directory (or its path_data_files)")
+    p.add_argument("--map-walks", help="comma list of indices or file names (default: every walk not tested)")
+    p.add_argument("--test-walks", help="comma list of indices or file names (default: every --every-th from 1)")
+    p.add_argument("--every", type=int, default=4, help="default split: walks 1, 1+N, 1+2N... are test walks")
+    p.add_argument("--folds", type=int, help="K-fold: walk i is a test walk in fold i %% K (all walks tested; "
+                                             "overrides --map-walks/--test-walks)")
+    p.add_argument("--filters", default="skpf,ekf,ukf,kf,pf,fkf")
+    p.add_argument("--algorithm", default="knn")
+    p.add_argument("--params", help="model params as JSON, e.g. '{\"k\": 7}'")
+    p.add_argument("--kinds", default="wifi", help="wifi, ble or wifi,ble")
+    p.add_argument("--calibration", choices=("site", "first-segment", "none"), default="site",
+                   help="PDR heading offset and Weinberg k: from the map walks (site), from each test walk's "
+                        "first >=10 m of waypoints (first-segment, that window is not scored), or none")
+    p.add_argument("--max-age", type=float, default=3.0, help="drop WiFi entries last seen longer ago (s)")
+    p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
+    p.add_argument("--initial", choices=("yes", "no", "both"), default="yes",
+                   help="open sessions at the first waypoint, without it, or both")
+    p.add_argument("--fix-noise", default="auto",
+                   help="auto: cov_floor_m from a walk-wise cross-validation on the map walks; "
+                        "model: the model's own covariances; a number: that cov_floor_m (m)")
+    p.add_argument("--concurrency", type=int, default=4, help="test walks replayed at once")
+    p.add_argument("--url", help="use this server instead of starting one (then give the keys)")
+    p.add_argument("--admin-key", default=_env("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"))
+    p.add_argument("--device-key", default=_env("LOCALIZER_DEVICE_KEY", "LOCALIZER_API_KEY"))
+    p.add_argument("--out", help="results JSON (a .md table is written beside it)")
+    p.set_defaults(func=cmd_msft)
 
     p = sub.add_parser("report", help="error table, CDF and trajectory plots from track results")
     p.add_argument("results", nargs="+")

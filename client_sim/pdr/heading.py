@@ -36,6 +36,13 @@ def mag_heading_deg(acc: np.ndarray, mag: np.ndarray, north_deg: float = 0.0) ->
     return (np.degrees(np.arctan2(east[:, 1], north[:, 1])) + north_deg) % 360.0
 
 
+def is_still(gyro: np.ndarray, acc: np.ndarray, gyro_std_rad_s: float = 0.05, acc_std: float = 0.3) -> bool:
+    """Whether a window of samples looks like a phone at rest (no turning, no gait)."""
+    if len(gyro) < 10:
+        return False
+    return bool(gyro.std(axis=0).max() < gyro_std_rad_s and np.linalg.norm(acc, axis=1).std() < acc_std)
+
+
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
@@ -60,13 +67,18 @@ class GyroMagKalman:
         acc_s = _moving_mean(imu.acc, int(rate))  # gravity direction, gait averaged out
         compass = np.radians(mag_heading_deg(acc_s, imu.mag, north_deg))
         strength = np.linalg.norm(imu.mag, axis=1)
-        still = t < t[0] + stand_s
+        start = t < t[0] + stand_s
+        # Initial alignment: mean compass over the first stand_s; the gyro bias and the
+        # expected field strength are taken from that window only if the phone really
+        # stood still there. A recording that starts mid-walk (real phones) would
+        # otherwise turn a turn-rate into a "bias" of several °/s and an odd local
+        # field into the expected one, after which every compass reading is rejected.
+        still = start if is_still(gyro[start], imu.acc[start]) else np.zeros_like(start)
         expected = self.expected_field or float(np.median(strength[still] if still.any() else strength))
-        # initial alignment while the phone is still: mean compass, mean gyro as bias
         if initial_heading_deg is not None:
             h = math.radians(initial_heading_deg)
         else:
-            c = compass[still] if still.any() else compass[:1]
+            c = compass[start] if start.any() else compass[:1]
             h = math.atan2(np.sin(c).mean(), np.cos(c).mean())
         b = float(gyro[still, 2].mean()) if still.sum() > 10 else 0.0
         P = np.diag([math.radians(5.0) ** 2, math.radians(0.1) ** 2])
