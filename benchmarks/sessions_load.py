@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,28 +30,11 @@ from sqlalchemy import create_engine, text
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.estimation.fingerprint.synthetic import make_site  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
 API = "/api/v1"
-
-
-def start_server(database_url: str, port: int, workers: int) -> subprocess.Popen:
-    env = {**os.environ, "LOCALIZER_DATABASE_URL": database_url, "LOCALIZER_ADMIN_KEYS": ADMIN,
-           "LOCALIZER_DEVICE_KEYS": DEVICE}
-    process = subprocess.Popen(
-        [sys.executable, "-m", "server", "serve", "--port", str(port), "--workers", str(workers),
-         "--log-level", "warning"], cwd=ROOT, env=env,
-    )
-    for _ in range(300):
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
-                return process
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    process.kill()
-    raise SystemExit("server did not start")
 
 
 def prepare_site(base: str, synth) -> int:
@@ -160,15 +141,15 @@ def main() -> None:
     synth = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
     with tempfile.TemporaryDirectory() as tmp:
         url = args.database_url or f"sqlite:///{Path(tmp) / 'bench.db'}"
-        server = start_server(url, args.port, args.workers)
+        server = start_server(args.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": ADMIN,
+                                          "LOCALIZER_DEVICE_KEYS": DEVICE}, args.workers)
         try:
             base = f"http://127.0.0.1:{args.port}"
             site_id = prepare_site(base, synth)
             sessions, lat, failures, elapsed = asyncio.run(
                 run(base, site_id, synth, args.phones, args.seconds, args.filter))
         finally:
-            server.terminate()
-            server.wait()
+            stop_server(server)
         lat_ms = np.array(lat) * 1000
         n = len(lat_ms)
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.errors import Conflict, Invalid
+from server.errors import Invalid
 from server.estimation.types import Fix
 from tests.conftest import LiveServer, make_settings
 
