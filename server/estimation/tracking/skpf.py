@@ -37,20 +37,24 @@ from server.estimation.types import Fix, Step
 N_STATE = 2
 _POINTS = JulierSigmaPoints(N_STATE, kappa=0.0)  # stateless: shared
 _WEIGHTS = np.asarray(_POINTS.Wm[1:], float)  # 1/2n each; the centre point has weight κ/(n+κ) = 0
+_SQRT_N = math.sqrt(N_STATE)
+
+
+def _chol2(a: float, b: float, c: float) -> tuple[float, float, float]:
+    """Lower Cholesky factor (l11, l21, l22) of [[a, b], [b, c]]."""
+    l11 = math.sqrt(a)
+    l21 = b / l11
+    return l11, l21, math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
 
 
 def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The 2n points x ± √n·(columns of chol(P)) and their equal weights 1/2n.
 
     The same set as filterpy's ``JulierSigmaPoints(2, kappa=0)`` without its zero-weight
-    centre point (pinned by a test), with the 2×2 Cholesky factor written out: at this
-    size filterpy's scipy call costs more than the whole filter step.
+    centre point (pinned by a test); the tracker itself uses the same points in closed form.
     """
-    a, b, c = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
-    l11 = math.sqrt(a)
-    l21 = b / l11
-    l22 = math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
-    r = math.sqrt(N_STATE)
+    l11, l21, l22 = _chol2(float(P[0, 0]), float(P[0, 1]), float(P[1, 1]))
+    r = _SQRT_N
     x0, x1 = float(x[0]), float(x[1])
     sigmas = np.array(
         [
@@ -61,17 +65,6 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
         ]
     )
     return sigmas, _WEIGHTS
-
-
-_SQRT_N = math.sqrt(N_STATE)
-_W = 1.0 / (2 * N_STATE)
-
-
-def _chol2(a: float, b: float, c: float) -> tuple[float, float, float]:
-    """Lower Cholesky factor (l11, l21, l22) of [[a, b], [b, c]]."""
-    l11 = math.sqrt(a)
-    l21 = b / l11
-    return l11, l21, math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
 
 
 def _fix_r(cov) -> tuple[float, float, float]:
