@@ -37,7 +37,7 @@ import math
 
 import numpy as np
 
-from server.estimation.tracking.base import as_mean, fix_cov, register
+from server.estimation.tracking.base import as_mean, fix_cov_entries, register
 from server.estimation.tracking.kf import _LinearKF
 from server.estimation.types import Fix, Step, step_displacement
 
@@ -100,7 +100,8 @@ class FuzzyKFTracker(_LinearKF):
         """The fix's own spread σ = sqrt(trace(R_fix)/2) (m); 1 when ``scale="none"``."""
         if self.params["scale"] == "none":
             return 1.0
-        return math.sqrt(0.5 * float(np.trace(fix_cov(fix.covariance))))
+        r00, _, r11 = fix_cov_entries(fix.covariance)
+        return math.sqrt(0.5 * (r00 + r11))
 
     @property
     def lost(self) -> bool:

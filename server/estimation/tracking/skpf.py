@@ -31,7 +31,7 @@ import math
 import numpy as np
 from filterpy.kalman import JulierSigmaPoints
 
-from server.estimation.tracking.base import MIN_FIX_VAR_M2, Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov_entries, register
 from server.estimation.types import Fix, Step
 
 N_STATE = 2
@@ -67,21 +67,6 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
     return sigmas, _WEIGHTS
 
 
-def _fix_r(cov) -> tuple[float, float, float]:
-    """``fix_cov(cov)`` as floats (r00, r01, r11); floats directly in the common case of a
-    well-conditioned 2×2 covariance, ``fix_cov`` itself otherwise (floor, scalar, errors)."""
-    try:
-        (c00, c01), (c10, c11) = cov.tolist() if isinstance(cov, np.ndarray) else cov
-        a, b, c = float(c00), 0.5 * (float(c01) + float(c10)), float(c11)
-    except (TypeError, ValueError):
-        a = b = c = math.nan
-    if math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
-        if 0.5 * (a + c) - math.sqrt(0.25 * (a - c) ** 2 + b * b) >= MIN_FIX_VAR_M2:
-            return a, b, c
-    R = fix_cov(cov)  # slow path: raises on bad input, floors a (near-)singular covariance
-    return float(R[0, 0]), float(R[0, 1]), float(R[1, 1])
-
-
 @register
 class SKPFTracker(Tracker):
     name = "skpf"
@@ -114,7 +99,7 @@ class SKPFTracker(Tracker):
         self._p11 += c * c * vd + s * s * vh + q
 
     def update(self, fix: Fix) -> None:
-        r00, r01, r11 = _fix_r(fix.covariance)
+        r00, r01, r11 = fix_cov_entries(fix.covariance)
         z0, z1 = float(fix.x), float(fix.y)
         x0, x1, p00, p01, p11 = self._x0, self._x1, self._p00, self._p01, self._p11
         # Sigma points redrawn from the prior: x ± √n·(columns of chol(P)).
