@@ -124,3 +124,14 @@ def test_path_loss_range():
     d, s = range_and_std(-79.0, -59.0, 2.0, rss_std_db=4.0)
     assert d == pytest.approx(10.0)
     assert s == pytest.approx(10.0 * math.log(10) * 4.0 / 20.0)  # ≈ 4.6 m
+
+
+def test_fix_cov_entries_equal_fix_cov():
+    from server.estimation.tracking.base import fix_cov, fix_cov_entries
+
+    for cov in ([[2.0, 0.3], [0.5, 1.0]], np.diag([3.0, 5.0]), np.zeros((2, 2)), 0.5, np.diag([1e-4, 2.0])):
+        R = fix_cov(cov)
+        assert fix_cov_entries(cov) == pytest.approx((R[0, 0], R[0, 1], R[1, 1]), abs=1e-15)
+    for bad in (np.full((2, 2), np.nan), [[1.0, 0.0], [0.0, np.inf]], np.eye(3)):
+        with pytest.raises(ValueError):
+            fix_cov_entries(bad)

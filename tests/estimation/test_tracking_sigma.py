@@ -118,3 +118,54 @@ def test_skpf_sigma_points_are_filterpy_julier_kappa0_without_centre():
     np.testing.assert_allclose(w, ref.Wm[1:], atol=1e-15)
     assert ref.Wm[0] == 0 and np.isclose(w.sum(), 1.0)
     np.testing.assert_allclose((w[:, None] * (sig - x)).T @ (sig - x), P, atol=1e-12)
+
+
+def _skpf_reference(x, P, items, q):
+    """The SKPF written with filterpy's sigma points and unscented transform (the
+    formulas of DESIGN.md, as the tracker was first written) — the closed-form tracker
+    must follow it to round-off."""
+    from filterpy.kalman import JulierSigmaPoints, unscented_transform
+
+    from server.estimation.tracking.base import fix_cov
+    from server.estimation.tracking.motion import step_noise_cov
+    from server.estimation.types import step_displacement
+
+    pts = JulierSigmaPoints(2, kappa=0.0)
+    w = pts.Wm[1:]
+    out = []
+    for item in items:
+        sig = pts.sigma_points(x, P)[1:]
+        if isinstance(item, Step):
+            sig = sig + step_displacement(item.length_m, item.heading_deg)
+            x, P = unscented_transform(sig, w, w, step_noise_cov(item) + q * np.eye(2))
+        else:
+            R = fix_cov(item.covariance)
+            z_hat, S = unscented_transform(sig, w, w, R)
+            Pxz = (w[:, None] * (sig - x)).T @ (sig - z_hat)
+            K = Pxz @ np.linalg.inv(S)
+            diff = item.mean - sig
+            lw = -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
+            lik = np.exp(lw - lw.max())
+            lik /= lik.sum()
+            x, P = lik @ sig, P - K @ S @ K.T
+        P = 0.5 * (P + P.T)
+        out.append((np.array(x), np.array(P)))
+    return out
+
+
+def test_skpf_closed_form_follows_filterpy_reference():
+    rng = np.random.default_rng(9)
+    P0 = np.array([[1.5, -0.4], [-0.4, 0.8]])
+    items = []
+    for k in range(60):
+        items.append(Step(k, 0.5 + 0.4 * rng.random(), 360 * rng.random(), 0.1 * rng.random(), 10 * rng.random()))
+        if k % 2:
+            A = rng.normal(size=(2, 2))
+            R = A @ A.T + 0.2 * np.eye(2) if k % 3 else np.diag([0.0, 2.0])  # some need the floor
+            items.append(Fix(*rng.normal(0, 3, 2), 0, R))
+    t = make_tracker("skpf", [0.3, -0.2], P0, q=0.05)
+    ref = _skpf_reference(np.array([0.3, -0.2]), P0, items, 0.05)
+    for item, (x, P) in zip(items, ref):
+        t.predict(item) if isinstance(item, Step) else t.update(item)
+        np.testing.assert_allclose(t.mean, x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(t.covariance, P, rtol=1e-9, atol=1e-9)

@@ -15,6 +15,7 @@ Dict format (JSON-safe, plain lists and numbers)::
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -91,6 +92,21 @@ def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
         return arr
     w, v = np.linalg.eigh(arr)
     return (v * np.maximum(w, min_var)) @ v.T
+
+
+def fix_cov_entries(cov) -> tuple[float, float, float]:
+    """``fix_cov(cov)`` as Python floats (r00, r01, r11); floats directly in the common case of a
+    well-conditioned 2×2 covariance, ``fix_cov`` itself otherwise (floor, scalar, errors)."""
+    try:
+        (c00, c01), (c10, c11) = cov.tolist() if isinstance(cov, np.ndarray) else cov
+        a, b, c = float(c00), 0.5 * (float(c01) + float(c10)), float(c11)
+    except (TypeError, ValueError):
+        a = b = c = math.nan
+    if math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
+        if 0.5 * (a + c) - math.sqrt(0.25 * (a - c) ** 2 + b * b) >= MIN_FIX_VAR_M2:
+            return a, b, c
+    R = fix_cov(cov)  # slow path: raises on bad input, floors a (near-)singular covariance
+    return float(R[0, 0]), float(R[0, 1]), float(R[1, 1])
 
 
 class Tracker(ABC):

@@ -1,10 +1,30 @@
 """FKF: fuzzy-logic (adaptive-R) Kalman filter.
 
 A linear KF (F = H = I) with Q = 0.225 m²·I per step and R switched by the size of
-the residual ‖z − x⁻‖ of the fix being applied: < 1 m → 0.675, < 2 m → 1.125,
-otherwise 1.575 m² on the diagonal (the fix's own covariance is not used).
-Candidate reference points are restricted to a box of ±9 m around the last estimate:
+the residual ‖z − x⁻‖ of the fix being applied. DESIGN.md gives the rule in absolute
+units: < 1 m → 0.675, < 2 m → 1.125, otherwise 1.575 m² on the diagonal. Candidate
+reference points are restricted to a box of ±9 m around the last estimate:
 ``search_region()`` returns it for the fingerprint model.
+
+Scaling to the fix (``scale="fix"``, the default). The literal numbers assume fixes
+good to about a metre. On a real site a fingerprint fix is often 4–6 m off (variance
+≈ 20 m²), so R ≤ 1.575 m² makes the filter trust every fix far more than it deserves
+and — together with the box, which only lets the model answer near the current
+estimate — lets a wrong estimate be confirmed by fixes pulled to the edge of the box:
+the track random-walks away and stays lost (corridor benchmark: 43 m worst error).
+So the rule is read in units of the fix's own spread σ = sqrt(trace(R_fix)/2), where
+R_fix is the fingerprint model's covariance (floored like every tracker's R): the
+thresholds are 1σ and 2σ and R = level·σ²·I with the levels 0.675, 1.125, 1.575 kept
+as relative levels (multiples of σ²). With σ = 1 m this is exactly DESIGN's rule;
+``scale="none"`` restores the literal metres/m² (``residual_thresholds_m`` and
+``r_levels`` then mean m and m²).
+
+Lost track. A residual at or above the last threshold is "large". After
+``lost_after`` (3) large residuals in a row the track is taken as lost and the box is
+released (``search_region()`` returns None) so the model may answer anywhere and the
+fixes can pull the estimate back; the box returns, centred on the estimate, with the
+first fix whose residual is not large. ``lost_after=0`` keeps the box always.
+
 PDR reset every 10 steps: the open-loop PDR track (``pdr_position``, steps only) is
 re-anchored on the fused estimate every ``reset_every`` steps. The fused prediction
 itself always starts from the last posterior (closed loop), so the reset bounds the
@@ -13,11 +33,16 @@ drift of the exposed PDR track rather than delaying fix feedback.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from server.estimation.tracking.base import as_mean, register
+from server.estimation.tracking.base import as_mean, fix_cov_entries, register
 from server.estimation.tracking.kf import _LinearKF
 from server.estimation.types import Fix, Step, step_displacement
+
+
+SCALES = ("fix", "none")
 
 
 @register
@@ -35,7 +60,11 @@ class FuzzyKFTracker(_LinearKF):
         r_levels: tuple[float, float, float] | list[float] = (0.675, 1.125, 1.575),
         box_half_width_m: float = 9.0,
         reset_every: int = 10,
+        scale: str = "fix",
+        lost_after: int = 3,
     ):
+        if scale not in SCALES:
+            raise ValueError(f"scale must be one of {SCALES}")
         r_levels = [float(v) for v in r_levels]
         thresholds = [float(v) for v in residual_thresholds_m]
         if len(r_levels) != len(thresholds) + 1 or thresholds != sorted(thresholds):
@@ -47,17 +76,38 @@ class FuzzyKFTracker(_LinearKF):
             "r_levels": r_levels,
             "box_half_width_m": float(box_half_width_m),
             "reset_every": int(reset_every),
+            "scale": scale,
+            "lost_after": int(lost_after),
         }
+        self.large_residuals = 0  # consecutive fixes with a residual at or above the last threshold
         self.pdr = as_mean(initial_mean)
         self.steps_since_reset = 0
         self.last_residual_m: float | None = None
         self.last_r: float = r_levels[0]
 
-    def r_for_residual(self, residual_m: float) -> float:
-        for threshold, level in zip(self.params["residual_thresholds_m"], self.params["r_levels"]):
-            if residual_m < threshold:
-                return level
-        return self.params["r_levels"][-1]
+    def r_for_residual(self, residual: float) -> float:
+        """The R level (relative in ``scale="fix"``, m² in ``scale="none"``) for a residual
+        (in units of the fix's σ, or in metres)."""
+        return self.params["r_levels"][self._level(residual)]
+
+    def _level(self, residual: float) -> int:
+        for i, threshold in enumerate(self.params["residual_thresholds_m"]):
+            if residual < threshold:
+                return i
+        return len(self.params["residual_thresholds_m"])
+
+    def fix_sigma(self, fix: Fix) -> float:
+        """The fix's own spread σ = sqrt(trace(R_fix)/2) (m); 1 when ``scale="none"``."""
+        if self.params["scale"] == "none":
+            return 1.0
+        r00, _, r11 = fix_cov_entries(fix.covariance)
+        return math.sqrt(0.5 * (r00 + r11))
+
+    @property
+    def lost(self) -> bool:
+        """Whether the last ``lost_after`` fixes all had large residuals (the box is released)."""
+        n = self.params["lost_after"]
+        return n > 0 and self.large_residuals >= n
 
     def predict(self, step: Step) -> None:
         super().predict(step)
@@ -70,11 +120,17 @@ class FuzzyKFTracker(_LinearKF):
     def update(self, fix: Fix) -> None:
         z = np.asarray(fix.mean, float)
         residual = float(np.hypot(*(z - self.mean)))
-        r = self.r_for_residual(residual)
+        sigma = self.fix_sigma(fix)
+        level = self._level(residual / sigma)
+        r = self.params["r_levels"][level] * sigma * sigma
         self._kf_update(z, np.eye(2) * r)
         self.last_residual_m, self.last_r = residual, r
+        top = len(self.params["residual_thresholds_m"])
+        self.large_residuals = self.large_residuals + 1 if level == top else 0
 
-    def search_region(self) -> tuple[float, float, float, float]:
+    def search_region(self) -> tuple[float, float, float, float] | None:
+        if self.lost:
+            return None
         x, y = self.mean
         b = self.params["box_half_width_m"]
         return (float(x - b), float(y - b), float(x + b), float(y + b))
@@ -87,6 +143,7 @@ class FuzzyKFTracker(_LinearKF):
         super().reset(mean, cov)
         self.pdr = as_mean(mean)
         self.steps_since_reset = 0
+        self.large_residuals = 0
 
     def _state(self) -> dict:
         return {
@@ -95,6 +152,7 @@ class FuzzyKFTracker(_LinearKF):
             "steps_since_reset": self.steps_since_reset,
             "last_residual_m": self.last_residual_m,
             "last_r": self.last_r,
+            "large_residuals": self.large_residuals,
         }
 
     def _load_state(self, state: dict) -> None:
@@ -103,3 +161,4 @@ class FuzzyKFTracker(_LinearKF):
         self.steps_since_reset = int(state["steps_since_reset"])
         self.last_residual_m = state["last_residual_m"]
         self.last_r = float(state["last_r"])
+        self.large_residuals = int(state.get("large_residuals", 0))

@@ -13,6 +13,15 @@ With n = 2 (state [x, y]):
 - the posterior mean is Σ w̃_i χ_i with w̃_i ∝ N(z; h(χ_i), R) normalised, and
   P = P⁻ − K S Kᵀ.
 State between calls is just (x, P); the sigma points follow from it.
+
+Implementation: the state is 2-D with 4 sigma points, so a NumPy call costs more than
+the arithmetic it does. ``predict`` and ``update`` are therefore written out in closed
+form on Python floats (2×2 Cholesky, inverse and products), with no array allocated
+per call. They compute the same quantities as the formulas above — for sigma points
+shifted rigidly the unscented transform gives exactly x⁻ = x + f(d, h) and
+P⁻ = P + Q, and for h(x) = x it gives S = P⁻ + R, Pxz = P⁻, so K S Kᵀ = P⁻ S⁻¹ P⁻ —
+and are pinned against filterpy's ``JulierSigmaPoints``/``unscented_transform`` and a
+filterpy ``KalmanFilter`` by the tests (equal to round-off).
 """
 
 from __future__ import annotations
@@ -20,29 +29,32 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from filterpy.kalman import JulierSigmaPoints, unscented_transform
+from filterpy.kalman import JulierSigmaPoints
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
-from server.estimation.tracking.motion import step_noise_cov
-from server.estimation.types import Fix, Step, step_displacement
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov_entries, register
+from server.estimation.types import Fix, Step
 
 N_STATE = 2
 _POINTS = JulierSigmaPoints(N_STATE, kappa=0.0)  # stateless: shared
 _WEIGHTS = np.asarray(_POINTS.Wm[1:], float)  # 1/2n each; the centre point has weight κ/(n+κ) = 0
+_SQRT_N = math.sqrt(N_STATE)
+
+
+def _chol2(a: float, b: float, c: float) -> tuple[float, float, float]:
+    """Lower Cholesky factor (l11, l21, l22) of [[a, b], [b, c]]."""
+    l11 = math.sqrt(a)
+    l21 = b / l11
+    return l11, l21, math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
 
 
 def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The 2n points x ± √n·(columns of chol(P)) and their equal weights 1/2n.
 
     The same set as filterpy's ``JulierSigmaPoints(2, kappa=0)`` without its zero-weight
-    centre point (pinned by a test), with the 2×2 Cholesky factor written out: at this
-    size filterpy's scipy call costs more than the whole filter step.
+    centre point (pinned by a test); the tracker itself uses the same points in closed form.
     """
-    a, b, c = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
-    l11 = math.sqrt(a)
-    l21 = b / l11
-    l22 = math.sqrt(max(c - l21 * l21, 0.0))  # round-off guard for a near-singular P
-    r = math.sqrt(N_STATE)
+    l11, l21, l22 = _chol2(float(P[0, 0]), float(P[0, 1]), float(P[1, 1]))
+    r = _SQRT_N
     x0, x1 = float(x[0]), float(x[1])
     sigmas = np.array(
         [
@@ -62,53 +74,89 @@ class SKPFTracker(Tracker):
     def __init__(self, initial_mean, initial_cov, walls=None, seed=None, q: float = 0.01):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q)}
-        self.x = as_mean(initial_mean)
-        self.P = as_cov(initial_cov)
-        #: normalised likelihood weights of the last update (diagnostics)
-        self.last_weights: np.ndarray | None = None
+        self._q = float(q)
+        self._set(as_mean(initial_mean), as_cov(initial_cov))
+        self._last_weights: tuple[float, ...] | None = None
+
+    @property
+    def last_weights(self) -> np.ndarray | None:
+        """Normalised likelihood weights of the sigma points at the last update (diagnostics)."""
+        return None if self._last_weights is None else np.array(self._last_weights)
 
     def predict(self, step: Step) -> None:
-        sigmas, w = symmetric_sigma_points(self.x, self.P)
-        sigmas = sigmas + step_displacement(step.length_m, step.heading_deg)
-        Q = step_noise_cov(step) + self.params["q"] * np.eye(2)
-        x, P = unscented_transform(sigmas, w, w, Q)
-        self._set(x, P)
+        # Sigma points of (x, P) shifted rigidly by f(d, h): their mean is x + f and their
+        # spread is P again; the step noise J·diag(σd², σh²)·Jᵀ and q·I are added.
+        h = math.radians(step.heading_deg)
+        s, c = math.sin(h), math.cos(h)
+        d = step.length_m
+        vd = step.length_std_m * step.length_std_m
+        vh = math.radians(step.heading_std_deg) ** 2 * d * d
+        q = self._q
+        self._x0 += d * s
+        self._x1 += d * c
+        self._p00 += s * s * vd + c * c * vh + q
+        self._p01 += s * c * (vd - vh)
+        self._p11 += c * c * vd + s * s * vh + q
 
     def update(self, fix: Fix) -> None:
-        R = fix_cov(fix.covariance)
-        z = np.asarray(fix.mean, float)
-        sigmas, w = symmetric_sigma_points(self.x, self.P)  # redrawn from the prior
-        Z = sigmas  # h(x) = x for a position fix
-        z_hat, S = unscented_transform(Z, w, w, R)
-        Pxz = (w[:, None] * (sigmas - self.x)).T @ (Z - z_hat)
-        K = Pxz @ np.linalg.inv(S)
-        # Gaussian likelihood of the fix for each sigma point, normalised (log domain).
-        diff = z - Z
-        maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
-        lw = -0.5 * maha
-        lik = np.exp(lw - lw.max())
-        lik /= lik.sum()
-        self.last_weights = lik
-        self._set(lik @ sigmas, self.P - K @ S @ K.T)
+        r00, r01, r11 = fix_cov_entries(fix.covariance)
+        z0, z1 = float(fix.x), float(fix.y)
+        x0, x1, p00, p01, p11 = self._x0, self._x1, self._p00, self._p01, self._p11
+        # Sigma points redrawn from the prior: x ± √n·(columns of chol(P)).
+        l11, l21, l22 = _chol2(p00, p01, p11)
+        u0, u1, v1 = _SQRT_N * l11, _SQRT_N * l21, _SQRT_N * l22
+        # Likelihood N(z; χ_i, R) of each point, in the log domain: −½ (z − χ)ᵀ R⁻¹ (z − χ).
+        det_r = r00 * r11 - r01 * r01
+        i00, i01, i11 = r11 / det_r, -r01 / det_r, r00 / det_r
+        e0, e1 = z0 - x0, z1 - x1
+        lw = []
+        for d0, d1 in ((e0 - u0, e1 - u1), (e0, e1 - v1), (e0 + u0, e1 + u1), (e0, e1 + v1)):
+            lw.append(-0.5 * (i00 * d0 * d0 + 2.0 * i01 * d0 * d1 + i11 * d1 * d1))
+        m = max(lw)
+        a, b, c, e = (math.exp(v - m) for v in lw)
+        total = a + b + c + e
+        a, b, c, e = a / total, b / total, c / total, e / total
+        self._last_weights = (a, b, c, e)
+        # Σ w̃_i χ_i with χ = x + (u, 0-col) etc.
+        self._x0 = x0 + (a - c) * u0
+        self._x1 = x1 + (a - c) * u1 + (b - e) * v1
+        # S = P⁻ + R, Pxz = P⁻, K = P⁻ S⁻¹, P⁺ = P⁻ − K S Kᵀ = P⁻ − P⁻ S⁻¹ P⁻.
+        s00, s01, s11 = p00 + r00, p01 + r01, p11 + r11
+        det_s = s00 * s11 - s01 * s01
+        j00, j01, j11 = s11 / det_s, -s01 / det_s, s00 / det_s
+        k00, k01 = p00 * j00 + p01 * j01, p00 * j01 + p01 * j11  # K = P S⁻¹
+        k10, k11 = p01 * j00 + p11 * j01, p01 * j01 + p11 * j11
+        self._p00 = p00 - (k00 * p00 + k01 * p01)
+        self._p01 = p01 - 0.5 * ((k00 * p01 + k01 * p11) + (k10 * p00 + k11 * p01))
+        self._p11 = p11 - (k10 * p01 + k11 * p11)
 
     def _set(self, x, P) -> None:
-        self.x = np.asarray(x, float).reshape(2).copy()
+        x = np.asarray(x, float).reshape(2)
         P = np.asarray(P, float)
-        self.P = 0.5 * (P + P.T)
+        self._x0, self._x1 = float(x[0]), float(x[1])
+        self._p00, self._p01, self._p11 = float(P[0, 0]), 0.5 * (float(P[0, 1]) + float(P[1, 0])), float(P[1, 1])
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.array([self._x0, self._x1])
+
+    @property
+    def P(self) -> np.ndarray:
+        return np.array([[self._p00, self._p01], [self._p01, self._p11]])
 
     @property
     def mean(self) -> np.ndarray:
-        return self.x.copy()
+        return self.x
 
     @property
     def covariance(self) -> np.ndarray:
-        return self.P.copy()
+        return self.P
 
     def reset(self, mean, cov) -> None:
         self._set(as_mean(mean), as_cov(cov))
 
     def _state(self) -> dict:
-        return {"mean": self.x.tolist(), "cov": self.P.tolist()}
+        return {"mean": [self._x0, self._x1], "cov": [[self._p00, self._p01], [self._p01, self._p11]]}
 
     def _load_state(self, state: dict) -> None:
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
