@@ -9,6 +9,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from server.api import health, locate, models, sessions, sites, surveys
+from server.api.errors import InternalErrors
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
@@ -47,6 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.positioning = Positioning(app.state.db, ModelCache(app.state.db, settings.model_cache_size))
     app.state.trainer = None
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(InternalErrors)  # outermost of ours: sees what the size limit lets through
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.state.sessions = SessionService(app.state.db, app.state.positioning)
