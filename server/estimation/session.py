@@ -91,16 +91,17 @@ class SessionEstimator:
         return self.tracker.search_region() if self.started else None
 
     # -- feeding ------------------------------------------------------------------
-    def _timestamp_initial(self, t: float) -> None:
-        """An initial position given without a time takes the time of the first input."""
+    def advance(self, t: float) -> None:
+        """Note an input at time ``t`` (applied or skipped); an initial position given without
+        a time takes the time of the first input."""
         if self.estimate is not None and self.estimate["source"] == "init" and self.estimate["t"] is None:
             self.estimate["t"] = float(t)
             self.init_t = float(t)
+        self.last_t = t
 
     def step(self, step: Step) -> dict[str, Any] | None:
         """Predict with one step; None (step dropped) before the session has a position."""
-        self._timestamp_initial(step.t)
-        self.last_t = step.t
+        self.advance(step.t)
         if not self.started:
             return None
         self.tracker.predict(step)
@@ -115,8 +116,7 @@ class SessionEstimator:
     ) -> dict[str, Any]:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on
         its first fix. ``walls_of(level)`` gives a floor's walls when the floor changes."""
-        self._timestamp_initial(scan.t)
-        self.last_t = scan.t
+        self.advance(scan.t)
         if not self.started:
             return self.start(fix.mean, fix.covariance, fix.floor, walls_of(fix.floor), scan.t, "scan")
         floor_before = self.floors.floor

@@ -177,8 +177,7 @@ class SessionService:
                 fix = self._fix(row, item, est, beacons)
             except ServiceError as exc:
                 skipped.append(SkippedScan(index=i, reason=_reason(exc)))
-                est._timestamp_initial(item.t)
-                est.last_t = item.t
+                est.advance(item.t)
                 continue
             cold = not est.started
             e = est.scan(item, fix, beacons, walls_of)
