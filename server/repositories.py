@@ -221,18 +221,14 @@ def _ensure_reference_points(
         if key not in ids:
             first.setdefault(key, fp)
     if first:
-        s.execute(
-            insert(ReferencePoint),
+        created = s.execute(
+            insert(ReferencePoint).returning(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key),
             [
                 {"site_id": site_id, "floor": floor, "key": key, "label": fp.label, "x": fp.x, "y": fp.y}
                 for (floor, key), fp in first.items()
             ],
         )
-        for rp_id, floor, key in s.execute(
-            select(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key).where(
-                ReferencePoint.site_id == site_id
-            )
-        ):
+        for rp_id, floor, key in created:
             ids[(floor, key)] = rp_id
     return ids, len(first)
 
