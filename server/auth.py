@@ -53,9 +53,6 @@ class Authenticator:
             found = repo.find_api_key(s, digest)
             return Principal(found.scope, digest) if found is not None else None
 
-    def principal(self, key: str) -> Principal | None:
-        return self.bootstrap(key) or self.stored(key)
-
 
 def create_key(db: Database, name: str, scope: Scope) -> tuple[int, str]:
     """Create and store a key; the plain key is returned once and never stored."""
