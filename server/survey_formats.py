@@ -101,10 +101,7 @@ def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]]]:
     for data_row, cells in enumerate(reader):
         if not any(c.strip() for c in cells):
             continue
-        if len(cells) != len(header):
-            raise invalid_rows(
-                [_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
-            )
+        _check_width(cells, header, data_row, reader.line_num)
         row: dict[str, Any] = {h: cells[i].strip() for i, h in fixed if cells[i].strip() != ""}
         row["rss"] = {h: cells[i].strip() for i, h in tx_columns if cells[i].strip() != ""}
         rows.append(row)
@@ -126,10 +123,7 @@ def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], i
     for data_row, cells in enumerate(reader):
         if not cells:
             continue
-        if len(cells) != len(header):
-            raise invalid_rows(
-                [_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=reader.line_num)]
-            )
+        _check_width(cells, header, data_row, reader.line_num)
         rss = {tx: cells[i] for i, tx in waps if cells[i] != UJI_NOT_HEARD}
         if not rss:
             skipped += 1
@@ -142,6 +136,11 @@ def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], i
         rows.append(row)
         positions.append((data_row, reader.line_num))
     return rows, positions, skipped
+
+
+def _check_width(cells: list[str], header: list[str], data_row: int, line: int) -> None:
+    if len(cells) != len(header):
+        raise invalid_rows([_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=line)])
 
 
 def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[FingerprintIn]:
