@@ -11,6 +11,10 @@ transport level is retried with the same ``seq`` (the server answers a replay fr
 store). Prints the batch latency percentiles and the achieved rate, then checks the
 stored data: every session has exactly one stored answer per posted seq and exactly
 3 track estimates per batch (+1 initial) — no lost and no doubled batches.
+
+The baseline, from the same client in the same process just before, is the server's
+capacity for its cheapest database-backed request (``GET /healthz``, closed loop): the
+ratio says how close batches come to what this machine's HTTP stack can carry at all.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import aiohttp
 import httpx
 import numpy as np
 from sqlalchemy import create_engine, text
@@ -30,6 +35,7 @@ from sqlalchemy import create_engine, text
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.http_load import client, closed_loop  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.estimation.fingerprint.synthetic import make_site  # noqa: E402
 
@@ -55,15 +61,15 @@ def prepare_site(base: str, synth) -> int:
         return site["id"]
 
 
-async def phone(client: httpx.AsyncClient, site_id: int, synth, i: int, seconds: int, filter: str,
+async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, seconds: int, filter: str,
                 start_at: float, latencies: list, failures: list) -> tuple[str, int]:
     rng = np.random.default_rng(i)
     x, y = float(rng.uniform(0, 12)), float(rng.uniform(0, 8))
     heading = float(rng.uniform(0, 360))
-    r = await client.post(f"{API}/sessions", json={"site_id": site_id, "filter": filter,
-                                                   "initial": {"x": x, "y": y, "floor": 0}})
-    r.raise_for_status()
-    sid = r.json()["id"]
+    async with http.post(f"{API}/sessions", json={"site_id": site_id, "filter": filter,
+                                                  "initial": {"x": x, "y": y, "floor": 0}}) as r:
+        r.raise_for_status()
+        sid = (await r.json())["id"]
     loop = asyncio.get_running_loop()
     t, ok = 0.0, 0
     for seq in range(seconds):
@@ -80,32 +86,39 @@ async def phone(client: httpx.AsyncClient, site_id: int, synth, i: int, seconds:
         for attempt in range(5):
             started = loop.time()
             try:
-                r = await client.post(f"{API}/sessions/{sid}/batches", json=body)
-            except httpx.TransportError as exc:
+                async with http.post(f"{API}/sessions/{sid}/batches", json=body) as r:
+                    text = await r.text()
+            except (aiohttp.ClientError, asyncio.TimeoutError) as exc:
                 failures.append(f"{sid} seq {seq}: retry after {type(exc).__name__}")
                 await asyncio.sleep(0.2 * (attempt + 1))
                 continue
-            if r.status_code == 200:
+            if r.status == 200:
                 latencies.append(loop.time() - started)
                 ok += 1
                 break
-            failures.append(f"{sid} seq {seq}: {r.status_code} {r.text[:200]}")
-            if r.status_code < 500:
+            failures.append(f"{sid} seq {seq}: {r.status} {text[:200]}")
+            if r.status < 500:
                 break
             await asyncio.sleep(0.2 * (attempt + 1))
     return sid, ok
 
 
+async def baseline(base: str, requests: int = 3000, concurrency: int = 64) -> float:
+    """Closed-loop capacity of ``GET /healthz`` (one ``SELECT 1``) in requests per second."""
+    async with client(base, DEVICE, concurrency) as http:
+        await closed_loop(http, lambda i: ("GET", "/healthz", None), 200, concurrency)  # warm up
+        elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
+    return requests / elapsed
+
+
 async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str):
-    limits = httpx.Limits(max_connections=phones, max_keepalive_connections=phones)
-    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, timeout=60,
-                                 limits=limits) as client:
+    async with client(base, DEVICE, phones) as http:
         loop = asyncio.get_running_loop()
         t0 = loop.time() + 2.0
         latencies, failures = [], []
-        began = time.perf_counter()
+        began = time.perf_counter() + 2.0  # when the first batch is due
         sessions = await asyncio.gather(*[
-            phone(client, site_id, synth, i, seconds, filter, t0 + i / phones, latencies, failures)
+            phone(http, site_id, synth, i, seconds, filter, t0 + i / phones, latencies, failures)
             for i in range(phones)
         ])
         elapsed = time.perf_counter() - began
@@ -146,6 +159,7 @@ def main() -> None:
         try:
             base = f"http://127.0.0.1:{args.port}"
             site_id = prepare_site(base, synth)
+            healthz_per_s = asyncio.run(baseline(base))
             sessions, lat, failures, elapsed = asyncio.run(
                 run(base, site_id, synth, args.phones, args.seconds, args.filter))
         finally:
@@ -155,6 +169,8 @@ def main() -> None:
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
               f"{url.split(':')[0]}): {n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
               f"(offered {args.phones}/s)")
+        print(f"baseline, GET /healthz closed loop from this process: {healthz_per_s:.0f} requests/s "
+              f"(batches answered/s = {n / elapsed / healthz_per_s:.2f}x baseline)")
         if n:
             print(f"batch latency ms: p50 {np.percentile(lat_ms, 50):.1f}  p90 {np.percentile(lat_ms, 90):.1f}  "
                   f"p99 {np.percentile(lat_ms, 99):.1f}  max {lat_ms.max():.1f}")
