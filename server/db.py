@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Connection, Engine, create_engine, event
 from sqlalchemy.orm import Session, sessionmaker
 
 
@@ -48,6 +48,14 @@ class Database:
                 session.rollback()
             else:
                 session.commit()
+
+    def read(self) -> Connection:
+        """A Core connection for reads (``with db.read() as conn``); nothing it does is committed."""
+        return self.engine.connect()
+
+    def write(self):
+        """A Core connection in a transaction that commits on success (``with db.write() as conn``)."""
+        return self.engine.begin()
 
     def dispose(self) -> None:
         self.engine.dispose()

@@ -1,7 +1,9 @@
 """All reads and writes of the database. Nothing outside this module builds SQL.
 
 Functions take an open `Session` inside the caller's transaction, so one request's
-effects commit (or roll back) together.
+effects commit (or roll back) together. The per-batch path of tracking sessions takes a
+Core `Connection` instead and runs statements built once at import: a batch is the
+service's hottest request, and the ORM's per-statement work was most of its cost.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from datetime import datetime, timezone
 
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import Connection, bindparam, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.schemas import FingerprintIn, FloorIn, SiteIn, TransmitterIn
@@ -26,6 +28,7 @@ from server.tables import (
     TrackEstimate,
     TrackingSession,
     Transmitter,
+    new_revision,
 )
 
 # --- API keys ----------------------------------------------------------------------------
@@ -115,11 +118,17 @@ def floor_levels(s: Session, site_id: int) -> set[int]:
     return set(s.scalars(select(Floor.level).where(Floor.site_id == site_id)))
 
 
+def touch_site(s: Session, site_id: int) -> None:
+    """Give the site a new revision: something a fix depends on changed (see ``Site.revision``)."""
+    s.execute(update(Site).where(Site.id == site_id).values(revision=new_revision()))
+
+
 def upsert_transmitters(s: Session, site_id: int, items: Iterable[TransmitterIn]) -> None:
     """Insert new transmitters and overwrite the stored fields of known ones."""
     items = list(items)
     if not items:
         return
+    touch_site(s, site_id)
     known = {t.tx_id: t for t in s.scalars(select(Transmitter).where(Transmitter.site_id == site_id))}
     for item in items:
         fields = item.model_dump(exclude={"id"})
@@ -303,16 +312,55 @@ def add_tracking_session(
 
 
 def get_tracking_session(s: Session, session_id: str) -> TrackingSession | None:
-    """A plain read (no lock): ``save_batch`` checks that nothing changed since."""
     return s.scalar(select(TrackingSession).where(TrackingSession.id == session_id).execution_options(populate_existing=True))
 
 
-def batch_answer(s: Session, session_id: str, seq: int) -> dict | None:
-    return s.scalar(select(SessionBatch.answer).where(SessionBatch.session_id == session_id, SessionBatch.seq == seq))
+# --- the per-batch path (Core, statements built once) ---------------------------------------------
+
+_SESSIONS, _SITES = TrackingSession.__table__, Site.__table__
+_BATCHES, _ESTIMATES = SessionBatch.__table__, TrackEstimate.__table__
+
+_FEED_STATE = (
+    select(
+        _SESSIONS.c.site_id, _SESSIONS.c.owner_key, _SESSIONS.c.model_id, _SESSIONS.c.status, _SESSIONS.c.state,
+        _SESSIONS.c.last_seq, _SESSIONS.c.track_length, _SITES.c.revision.label("site_revision"),
+    )
+    .join(_SITES, _SITES.c.id == _SESSIONS.c.site_id)
+    .where(_SESSIONS.c.id == bindparam("session_id"))
+)
+_STORED_ANSWER = select(_BATCHES.c.answer).where(
+    _BATCHES.c.session_id == bindparam("session_id"), _BATCHES.c.seq == bindparam("seq")
+)
+_CLAIM_SEQ = (
+    update(_SESSIONS)
+    .where(
+        _SESSIONS.c.id == bindparam("sid"),
+        _SESSIONS.c.last_seq == bindparam("expected_seq"),
+        _SESSIONS.c.status == "open",
+    )
+    .values(state=bindparam("new_state"), last_seq=bindparam("new_seq"), track_length=bindparam("new_length"))
+)
+_INSERT_ANSWER = insert(_BATCHES)
+_INSERT_ESTIMATES = insert(_ESTIMATES)
+_DATE_INITIAL = (
+    update(_ESTIMATES)
+    .where(_ESTIMATES.c.session_id == bindparam("sid"), _ESTIMATES.c.idx == 0, _ESTIMATES.c.t.is_(None))
+    .values(t=bindparam("init_t"))
+)
+
+
+def feed_state(conn: Connection, session_id: str):
+    """The session's row with its site's revision, or None. A plain read (no lock):
+    ``save_batch`` checks that nothing changed since."""
+    return conn.execute(_FEED_STATE, {"session_id": session_id}).first()
+
+
+def batch_answer(conn: Connection, session_id: str, seq: int) -> dict | None:
+    return conn.execute(_STORED_ANSWER, {"session_id": session_id, "seq": seq}).scalar()
 
 
 def save_batch(
-    s: Session,
+    conn: Connection,
     session_id: str,
     *,
     expected_last_seq: int,
@@ -329,34 +377,23 @@ def save_batch(
     (SQLite) before anything else is written; a concurrent feeder of the same session
     finds ``last_seq`` moved and gets ``False`` (nothing written; it re-reads and retries).
     """
-    result = s.execute(
-        update(TrackingSession)
-        .where(
-            TrackingSession.id == session_id,
-            TrackingSession.last_seq == expected_last_seq,
-            TrackingSession.status == "open",
-        )
-        .values(state=state, last_seq=seq, track_length=first_idx + len(estimates))
-        .execution_options(synchronize_session=False)
-    )
-    if result.rowcount != 1:
+    claimed = conn.execute(_CLAIM_SEQ, {
+        "sid": session_id, "expected_seq": expected_last_seq, "new_state": state, "new_seq": seq,
+        "new_length": first_idx + len(estimates),
+    })
+    if claimed.rowcount != 1:
         return False
-    s.execute(insert(SessionBatch), [{"session_id": session_id, "seq": seq, "answer": answer}])
-    add_track_estimates(s, session_id, first_idx, estimates)
+    conn.execute(_INSERT_ANSWER, [{"session_id": session_id, "seq": seq, "answer": answer}])
+    add_track_estimates(conn, session_id, first_idx, estimates)
     if init_t is not None:  # the initial estimate takes the time of the session's first input
-        s.execute(
-            update(TrackEstimate)
-            .where(TrackEstimate.session_id == session_id, TrackEstimate.idx == 0, TrackEstimate.t.is_(None))
-            .values(t=init_t)
-            .execution_options(synchronize_session=False)
-        )
+        conn.execute(_DATE_INITIAL, {"sid": session_id, "init_t": init_t})
     return True
 
 
-def add_track_estimates(s: Session, session_id: str, first_idx: int, estimates: Sequence[dict]) -> None:
+def add_track_estimates(s: Session | Connection, session_id: str, first_idx: int, estimates: Sequence[dict]) -> None:
     if estimates:
         s.execute(
-            insert(TrackEstimate),
+            _INSERT_ESTIMATES,
             [{"session_id": session_id, "idx": first_idx + i, **e} for i, e in enumerate(estimates)],
         )
 
@@ -376,10 +413,10 @@ def close_tracking_session(s: Session, session_id: str) -> bool:
     return result.rowcount == 1
 
 
-def nearby_crowd_points(s: Session, site_id: int, floor: int, x: float, y: float, radius_m: float) -> Sequence[Fingerprint]:
+def nearby_crowd_points(conn: Connection, site_id: int, floor: int, x: float, y: float, radius_m: float) -> Sequence:
     """Crowd fingerprints of a floor in the box of ±radius around (x, y), locked for the merge."""
-    return s.scalars(
-        select(Fingerprint)
+    return conn.execute(
+        select(Fingerprint.id, Fingerprint.x, Fingerprint.y, Fingerprint.floor, Fingerprint.rss, Fingerprint.samples)
         .where(
             Fingerprint.site_id == site_id,
             Fingerprint.source == "crowd",
@@ -392,8 +429,8 @@ def nearby_crowd_points(s: Session, site_id: int, floor: int, x: float, y: float
     ).all()
 
 
-def add_crowd_fingerprint(s: Session, site_id: int, point: dict, heading_deg: float | None, t: float | None, device: str | None) -> None:
-    s.execute(
+def add_crowd_fingerprint(conn: Connection, site_id: int, point: dict, heading_deg: float | None, t: float | None, device: str | None) -> None:
+    conn.execute(
         insert(Fingerprint),
         [
             {
@@ -412,17 +449,30 @@ def add_crowd_fingerprint(s: Session, site_id: int, point: dict, heading_deg: fl
     )
 
 
-def update_crowd_fingerprint(s: Session, fingerprint_id: int, point: dict) -> None:
-    s.execute(
+def update_crowd_fingerprint(conn: Connection, fingerprint_id: int, point: dict) -> None:
+    conn.execute(
         update(Fingerprint)
         .where(Fingerprint.id == fingerprint_id)
         .values(x=point["x"], y=point["y"], rss=point["rss"], samples=point["count"])
-        .execution_options(synchronize_session=False)
     )
 
 
-def set_site_settings(s: Session, site_id: int, settings: dict) -> bool:
-    return s.execute(update(Site).where(Site.id == site_id).values(settings=settings)).rowcount == 1
+def merge_site_settings(s: Session, site_id: int, changes: dict) -> bool:
+    """Merge ``changes`` into the stored settings. A compare-and-set on the revision makes
+    concurrent merges each see the other's keys instead of overwriting them."""
+    while True:
+        row = s.execute(select(Site.settings, Site.revision).where(Site.id == site_id)).first()
+        if row is None:
+            return False
+        merged = {**(row.settings or {}), **changes}
+        done = s.execute(
+            update(Site)
+            .where(Site.id == site_id, Site.revision == row.revision)
+            .values(settings=merged, revision=new_revision())
+            .execution_options(synchronize_session=False)
+        )
+        if done.rowcount == 1:
+            return True
 
 
 def _chunks(items: list[int], size: int) -> Iterable[list[int]]:
@@ -511,6 +561,21 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[dict]:
     return [row._asdict() for row in s.execute(query)]
 
 
+def site_context(s: Session, site_id: int) -> dict | None:
+    """Everything a fix on the site depends on, with the revision it is valid for (None: no site)."""
+    site = s.execute(select(Site.revision, Site.settings).where(Site.id == site_id)).first()
+    if site is None:
+        return None
+    floors = s.execute(select(Floor.level, Floor.walls).where(Floor.site_id == site_id)).all()
+    return {
+        "revision": site.revision,
+        "settings": dict(site.settings or {}),
+        "walls": {level: walls or [] for level, walls in floors},
+        "transmitters": positioned_transmitters(s, site_id),
+        "active_model": serving_model(s, site_id, None),
+    }
+
+
 def positioned_transmitters(s: Session, site_id: int) -> list[dict]:
     """Transmitters with a known position, as plain dicts for the propagation model."""
     rows = s.execute(
@@ -550,6 +615,7 @@ def activate_model(s: Session, site_id: int, model_id: int) -> None:
     never none: both statements commit together."""
     s.execute(update(Model).where(Model.site_id == site_id, Model.active, Model.id != model_id).values(active=False))
     s.execute(update(Model).where(Model.id == model_id).values(active=True))
+    touch_site(s, site_id)
 
 
 def model_artifact(s: Session, model_id: int) -> ModelArtifact | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import uuid
 from datetime import datetime, timezone
 from typing import Any
 
@@ -25,6 +26,12 @@ from sqlalchemy.types import TypeDecorator
 
 def utcnow() -> datetime:
     return datetime.now(timezone.utc)
+
+
+def new_revision() -> str:
+    """A fresh site revision: random, so a site id that SQLite reuses after a delete never
+    matches a revision cached for the deleted site."""
+    return uuid.uuid4().hex
 
 
 class UtcDateTime(TypeDecorator):
@@ -64,6 +71,9 @@ class Site(Base):
     name: Mapped[str] = mapped_column(String(200), unique=True)
     settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    #: changes whenever anything a fix depends on changes (settings, positioned transmitters,
+    #: the active model), so a process may cache those per site and check one value per request
+    revision: Mapped[str] = mapped_column(String(32), default=new_revision, server_default="")
 
     floors: Mapped[list[Floor]] = relationship(
         back_populates="site", order_by="Floor.level", cascade="all, delete-orphan", passive_deletes=True

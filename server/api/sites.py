@@ -79,7 +79,7 @@ def patch_site(site_id: int, body: SitePatch, db: DB, _: Admin) -> SiteOut:
     """Change site settings (given keys are merged into the stored ones)."""
     with db.transaction() as s:
         site = existing_site(s, site_id)
-        repo.set_site_settings(s, site_id, {**(site.settings or {}), **body.settings.model_dump(exclude_unset=True)})
+        repo.merge_site_settings(s, site_id, body.settings.model_dump(exclude_unset=True))
         s.refresh(site)
         return _site_out(site, repo.site_counts(s, [site_id])[site_id])
 

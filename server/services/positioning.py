@@ -26,6 +26,10 @@ from server.estimation.fingerprint import (
 from server.estimation.types import Fix
 
 
+#: (model id, algorithm, artifact SHA-256) of a ready model
+ServingModel = tuple[int, str, str]
+
+
 @dataclass(frozen=True)
 class Located:
     fix: Fix
@@ -69,7 +73,7 @@ class Positioning:
         self._db = db
         self.cache = cache
 
-    def serving_model(self, site_id: int, model_id: int | None = None) -> tuple[int, str, str]:
+    def serving_model(self, site_id: int, model_id: int | None = None) -> ServingModel:
         """(id, algorithm, artifact SHA-256) of the model that answers for the site: 404/409 when there is none."""
         with self._db.transaction() as s:
             found = repo.serving_model(s, site_id, model_id)
@@ -92,9 +96,11 @@ class Positioning:
         model_id: int | None = None,
         near: Fix | tuple[float, float] | None = None,
         radius_m: float | None = None,
+        serving: ServingModel | None = None,
     ) -> Located:
-        """A fix for one scan; ``near``/``radius_m`` restrict candidates around a previous estimate."""
-        found_id, algorithm, sha256 = self.serving_model(site_id, model_id)
+        """A fix for one scan; ``near``/``radius_m`` restrict candidates around a previous estimate.
+        ``serving`` names the model when the caller already knows it (else the database is asked)."""
+        found_id, algorithm, sha256 = serving or self.serving_model(site_id, model_id)
         model = self.cache.get(found_id, sha256)
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)

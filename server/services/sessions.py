@@ -6,6 +6,10 @@ track estimates, crowd fingerprints) is written in one transaction that starts w
 compare-and-set on ``last_seq``; if another request applied a batch meanwhile the
 write is abandoned and the request starts over (and finds its seq already answered,
 when it was a duplicate). See ``repositories.save_batch``.
+
+A batch costs two round trips to the database: one read (the session row with its
+site's revision; the site's transmitters, settings, walls and serving model come from
+the per-process ``SiteContexts`` while that revision holds) and one write transaction.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from server.auth import Principal
 from server.db import Database
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.fingerprint import cold_start_fix
-from server.estimation.session import Beacon, SessionEstimator, multilateration_fix, time_order
+from server.estimation.session import SessionEstimator, multilateration_fix, time_order
 from server.estimation.tracking import gate, make_crowd_point, merge_points
 from server.estimation.tracking.crowd import find_merge_target
 from server.estimation.types import Fix, Scan, Step
@@ -34,7 +38,7 @@ from server.schemas import (
     SessionOut,
     SkippedScan,
 )
-from server.tables import TrackingSession
+from server.services.site_context import SiteContext, SiteContexts
 
 #: how often a feed starts over after losing the compare-and-set to a concurrent request
 MAX_ATTEMPTS = 20
@@ -57,6 +61,7 @@ class SessionService:
     def __init__(self, db: Database, positioning: Any = None):
         self.db = db
         self.positioning = positioning
+        self.sites = SiteContexts(db)
 
     # -- open / read / close ---------------------------------------------------------------
     def open(self, principal: Principal, body: SessionIn) -> SessionOut:
@@ -106,47 +111,37 @@ class SessionService:
         if len(batch.scans) > MAX_BATCH_SCANS:
             raise TooLarge([{"field": "scans", "msg": f"{len(batch.scans)} scans > {MAX_BATCH_SCANS} in one batch"}])
         for _ in range(MAX_ATTEMPTS):
-            # 1. read the session (short transaction; no connection is held while computing,
-            #    since computing asks the positioning service, which opens its own)
-            with self.db.transaction() as s:
-                row = _owned(s, principal, session_id)
+            # 1. read the session (no connection is held while computing, which may load a model)
+            with self.db.read() as conn:
+                row = repo.feed_state(conn, session_id)
+                if row is None or (principal.scope != "admin" and row.owner_key != principal.key_hash):
+                    raise NotFound(f"session {session_id} does not exist")
                 if batch.seq <= row.last_seq:
-                    answer = repo.batch_answer(s, session_id, batch.seq)
+                    answer = repo.batch_answer(conn, session_id, batch.seq)
                     if answer is None:
                         raise Conflict(
                             [{"field": "seq", "msg": f"seq {batch.seq} is below the last applied seq {row.last_seq} "
                               "and was never applied; batches cannot be applied out of order"}]
                         )
                     return BatchResult(**answer)
-                if row.status != "open":
-                    raise Conflict([{"field": "session", "msg": f"session {session_id} is closed"}])
-                beacons: dict[str, Beacon] = {}
-                settings: dict[str, Any] = {}
-                if batch.scans:
-                    beacons = {
-                        t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
-                        for t in repo.positioned_transmitters(s, row.site_id)
-                        if t["y"] is not None
-                    }
-                    settings = repo.site_settings(s, row.site_id) or {}
+            if row.status != "open":
+                raise Conflict([{"field": "session", "msg": f"session {session_id} is closed"}])
             # 2. compute against that state
-            outcome = self._apply(row, batch, beacons, settings)
+            outcome = self._apply(row, batch, self.sites.get(row.site_id, row.site_revision))
             # 3. write it all in one transaction, if nobody applied a batch meanwhile
-            with self.db.transaction() as s:
+            with self.db.write() as conn:
                 if repo.save_batch(
-                    s, session_id, expected_last_seq=row.last_seq, seq=batch.seq, state=outcome.state,
+                    conn, session_id, expected_last_seq=row.last_seq, seq=batch.seq, state=outcome.state,
                     answer=outcome.answer, first_idx=row.track_length,
                     estimates=[{"seq": batch.seq, **e} for e in outcome.estimates], init_t=outcome.init_t,
                 ):
                     if outcome.crowd:
-                        self._crowdsource(s, row.site_id, outcome.crowd)
+                        self._crowdsource(conn, row.site_id, outcome.crowd)
                     return BatchResult(**outcome.answer)
-                s.rollback()  # lost the race: start over from the stored state
+            # lost the race (nothing was written): start over from the stored state
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
-    def _apply(
-        self, row: TrackingSession, batch: BatchIn, beacons: dict[str, Beacon], settings: dict[str, Any]
-    ) -> _Outcome:
+    def _apply(self, row, batch: BatchIn, site: SiteContext) -> _Outcome:
         """Compute the batch against the stored state (nothing is written here)."""
         est = SessionEstimator.from_dict(row.state)
         steps = [
@@ -163,7 +158,8 @@ class SessionService:
             ]
             if late:
                 raise Invalid(late[:100])
-        walls_of = lambda level: self._walls(row.site_id, level)  # noqa: E731
+        beacons = site.beacons
+        walls_of = lambda level: site.walls.get(level, [])  # noqa: E731
         estimates, crowd, skipped = [], [], []
         applied_steps = applied_scans = 0
         for kind, i, item in time_order(steps, scans):
@@ -174,7 +170,7 @@ class SessionService:
                     estimates.append(e)
                 continue
             try:
-                fix = self._fix(row, item, est, beacons)
+                fix = self._fix(row, item, est, site)
             except ServiceError as exc:
                 skipped.append(SkippedScan(index=i, reason=_reason(exc)))
                 est.advance(item.t)
@@ -186,7 +182,7 @@ class SessionService:
             # Crowdsourcing: a tight estimate that agrees with the model's own fix for the scan
             # (never the cold-start scan: there the estimate *is* the fix).
             if (
-                settings.get("crowdsourcing")
+                site.settings.get("crowdsourcing")
                 and not cold
                 and e["floor"] == fix.floor
                 and gate([e["x"], e["y"]], e["covariance"], fix.mean, item.rss)
@@ -201,11 +197,7 @@ class SessionService:
         ).model_dump(mode="json")
         return _Outcome(answer, est.to_dict(), estimates, crowd, est.init_t)
 
-    def _walls(self, site_id: int, level: int) -> list:
-        with self.db.transaction() as s:
-            return repo.floor_walls(s, site_id, level)
-
-    def _fix(self, row: TrackingSession, scan: Scan, est: SessionEstimator, beacons: dict[str, Beacon]) -> Fix:
+    def _fix(self, row, scan: Scan, est: SessionEstimator, site: SiteContext) -> Fix:
         """The fingerprint fix of one scan (restricted to the tracker's search region, if any).
 
         The first fix of a session without ``initial`` is the cold-start fusion (DESIGN.md):
@@ -214,16 +206,16 @@ class SessionService:
         if not est.started:
             fingerprint, why = None, None
             try:
-                fingerprint = self._locate(row, scan, est)
+                fingerprint = self._locate(row, scan, est, site)
             except ServiceError as exc:
                 why = exc
-            ml = multilateration_fix(scan.rss, beacons, None if fingerprint is None else fingerprint.floor)
+            ml = multilateration_fix(scan.rss, site.beacons, None if fingerprint is None else fingerprint.floor)
             if fingerprint is None and ml is None:
                 raise why if why is not None else Invalid("no fix")
             return cold_start_fix(fingerprint, ml)
-        return self._locate(row, scan, est)
+        return self._locate(row, scan, est, site)
 
-    def _locate(self, row: TrackingSession, scan: Scan, est: SessionEstimator) -> Fix:
+    def _locate(self, row, scan: Scan, est: SessionEstimator, site: SiteContext) -> Fix:
         if self.positioning is None:
             raise Conflict("no fingerprint model service is configured")
         near = radius = None
@@ -233,23 +225,24 @@ class SessionService:
             near = ((x0 + x1) / 2, (y0 + y1) / 2)
             radius = max(x1 - x0, y1 - y0) / 2
         located = self.positioning.locate(
-            row.site_id, scan.rss, heading_deg=scan.heading_deg, model_id=row.model_id, near=near, radius_m=radius
+            row.site_id, scan.rss, heading_deg=scan.heading_deg, model_id=row.model_id, near=near, radius_m=radius,
+            serving=site.active_model if row.model_id is None else None,
         )
         return located.fix
 
-    def _crowdsource(self, s, site_id: int, points: list[tuple[dict[str, Any], Scan]]) -> None:
+    def _crowdsource(self, conn, site_id: int, points: list[tuple[dict[str, Any], Scan]]) -> None:
         """Merge each confident (estimate, scan) into the nearest crowd point within 1 m, or insert it."""
         for point, scan in points:
-            rows = repo.nearby_crowd_points(s, site_id, point["floor"], point["x"], point["y"], CROWD_MERGE_RADIUS_M)
+            rows = repo.nearby_crowd_points(conn, site_id, point["floor"], point["x"], point["y"], CROWD_MERGE_RADIUS_M)
             stored = [{"x": r.x, "y": r.y, "floor": r.floor, "count": r.samples, "rss": r.rss} for r in rows]
             target = find_merge_target(stored, point, CROWD_MERGE_RADIUS_M)
             if target is None:
-                repo.add_crowd_fingerprint(s, site_id, point, scan.heading_deg, scan.t, device=None)
+                repo.add_crowd_fingerprint(conn, site_id, point, scan.heading_deg, scan.t, device=None)
             else:
-                repo.update_crowd_fingerprint(s, rows[target].id, merge_points(stored[target], point))
+                repo.update_crowd_fingerprint(conn, rows[target].id, merge_points(stored[target], point))
 
 
-def _owned(s, principal: Principal, session_id: str) -> TrackingSession:
+def _owned(s, principal: Principal, session_id: str):
     """The session, if the caller may see it: its own device key, or any admin key. Others get 404,
     so that session ids of other phones are not even confirmed to exist."""
     row = repo.get_tracking_session(s, session_id)
@@ -258,7 +251,7 @@ def _owned(s, principal: Principal, session_id: str) -> TrackingSession:
     return row
 
 
-def _session_out(row: TrackingSession) -> SessionOut:
+def _session_out(row) -> SessionOut:
     estimate = (row.state or {}).get("estimate")
     return SessionOut(
         id=row.id,

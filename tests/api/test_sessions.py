@@ -42,7 +42,7 @@ class FakePositioning:
     def __init__(self, positions: dict[str, tuple[float, float, int]], var: float = 0.25):
         self.positions, self.var, self.calls = positions, var, []
 
-    def locate(self, site_id, rss, heading_deg=None, model_id=None, near=None, radius_m=None):
+    def locate(self, site_id, rss, heading_deg=None, model_id=None, near=None, radius_m=None, serving=None):
         self.calls.append({"near": near, "radius_m": radius_m})
         known = {k: v for k, v in rss.items() if k in self.positions}
         if not known:
@@ -173,6 +173,30 @@ def test_cold_start_without_a_model_multilaterates_from_positioned_transmitters(
     r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 0.0, "rss": rss}]}).json()
     assert r["applied_scans"] == 1 and r["estimate"]["source"] == "scan" and r["estimate"]["floor"] == 0
     assert math.hypot(r["estimate"]["x"] - 5.0, r["estimate"]["y"]) < 1.0, r
+
+
+def _cold_start_x(device, site) -> float:
+    """x of the cold-start fix of a new session for a scan heard as if at (5, 0) by the
+    transmitters' default R0/γ (no model: multilateration from their stored positions)."""
+    sid = open_session(device, site, "ekf", initial=False)["id"]
+    rss = {"wifi:ap1": -45.0 - 25 * math.log10(5.0), "wifi:ap2": -45.0 - 25 * math.log10(5.0),
+           "wifi:ap3": -45.0 - 25 * math.log10(math.hypot(5, 10))}
+    r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 0.0, "rss": rss}]}).json()
+    assert r["applied_scans"] == 1, r
+    return r["estimate"]["x"]
+
+
+def test_moved_transmitters_and_a_recreated_site_are_seen_by_the_next_batch(admin, device, site):
+    """Each process caches what fixes depend on per site revision: a change must show at once,
+    and a new site that SQLite gives a deleted site's id must not inherit its cache."""
+    assert abs(_cold_start_x(device, site) - 5.0) < 1.0
+    moved = [{**t, "x": t["x"] + 20.0} for t in TRANSMITTERS]
+    assert admin.put(f"/api/v1/sites/{site}/transmitters", json=moved).status_code == 200
+    assert abs(_cold_start_x(device, site) - 25.0) < 1.0
+    assert admin.delete(f"/api/v1/sites/{site}").status_code == 204
+    again = admin.post("/api/v1/sites", json={"name": "lab again", "floors": FLOORS, "transmitters": TRANSMITTERS})
+    assert again.status_code == 201, again.text
+    assert abs(_cold_start_x(device, again.json()["id"]) - 5.0) < 1.0
 
 
 def test_scan_with_no_known_transmitter_is_skipped_not_fatal(device, site, positioning):
@@ -471,6 +495,15 @@ def test_crowdsourcing_on_stores_and_merges_crowd_points(admin, device, site, po
     # the estimate converges onto the fix; the confident ones all land within 1 m: merged into one point
     assert len(rows) == 1 and rows[0][3] >= 3, rows
     assert admin.get(f"/api/v1/sites/{site}").json()["fingerprints"]["crowd"] == 1
+
+
+def test_turning_crowdsourcing_on_mid_session_applies_from_the_next_batch(admin, device, site, positioning, clean_db):
+    sid = _walk_in_place(device, site, 3)
+    assert _crowd_rows(clean_db) == []
+    assert admin.patch(f"/api/v1/sites/{site}", json={"settings": {"crowdsourcing": True}}).status_code == 200
+    scans = [{"t": 10.5, "rss": CONFIDENT_SCAN}]
+    assert device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 3, "scans": scans}).status_code == 200
+    assert len(_crowd_rows(clean_db)) == 1
 
 
 def test_crowdsourcing_gate_refuses_uncertain_estimates(admin, device, site, positioning, clean_db):

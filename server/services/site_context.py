@@ -1,0 +1,74 @@
+"""What fixes on a site depend on, cached per process and checked against the site's revision.
+
+A tracking batch needs the site's positioned transmitters, its settings, its floors'
+walls and the model that serves it. Reading those costs more than the rest of a batch,
+yet they change only on admin actions, each of which gives the site a new revision
+(``Site.revision``). The batch reads the revision with the session row, in the same
+statement, so a cached context is used only while it is exactly current: a change made
+through any process is seen by the next batch of every process.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+from server import repositories as repo
+from server.db import Database
+from server.errors import NotFound
+from server.estimation.session import Beacon
+from server.services.positioning import ServingModel
+
+
+@dataclass
+class SiteContext:
+    revision: str
+    settings: dict[str, Any]
+    beacons: dict[str, Beacon]
+    walls: dict[int, list]
+    #: the site's active model, when it is ready (a session pinned to a model asks for it)
+    active_model: ServingModel | None
+
+
+class SiteContexts:
+    """The latest context of up to ``size`` sites; a site is reloaded when its revision moves."""
+
+    def __init__(self, db: Database, size: int = 256):
+        self._db = db
+        self._size = size
+        self._contexts: OrderedDict[int, SiteContext] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, site_id: int, revision: str) -> SiteContext:
+        with self._lock:
+            context = self._contexts.get(site_id)
+            if context is not None and context.revision == revision:
+                self._contexts.move_to_end(site_id)
+                return context
+        context = self._load(site_id)
+        with self._lock:
+            self._contexts[site_id] = context
+            self._contexts.move_to_end(site_id)
+            if len(self._contexts) > self._size:
+                self._contexts.popitem(last=False)
+        return context
+
+    def _load(self, site_id: int) -> SiteContext:
+        with self._db.transaction() as s:
+            found = repo.site_context(s, site_id)
+        if found is None:
+            raise NotFound(f"site {site_id} does not exist")
+        active = found["active_model"]
+        return SiteContext(
+            revision=found["revision"],
+            settings=found["settings"],
+            beacons={
+                t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
+                for t in found["transmitters"]
+                if t["y"] is not None
+            },
+            walls=found["walls"],
+            active_model=(active[0], active[1], active[3]) if active and active[2] == "ready" and active[3] else None,
+        )
