@@ -12,9 +12,10 @@ store). Prints the batch latency percentiles and the achieved rate, then checks 
 stored data: every session has exactly one stored answer per posted seq and exactly
 3 track estimates per batch (+1 initial) — no lost and no doubled batches.
 
-The baseline, from the same client in the same process just before, is the server's
-capacity for its cheapest database-backed request (``GET /healthz``, closed loop): the
-ratio says how close batches come to what this machine's HTTP stack can carry at all.
+First, closed loop from the same client: the server's capacity for batches, and the
+baseline, its capacity for its cheapest database-backed request (``GET /healthz``); the
+ratio says how close batches come to what this machine's HTTP stack can carry at all
+and, unlike either figure, hardly moves with whatever else the machine is doing.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from sqlalchemy import create_engine, text
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.http_load import client, closed_loop  # noqa: E402
+from benchmarks.http_load import client, closed_loop, cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.estimation.fingerprint.synthetic import make_site  # noqa: E402
 
@@ -61,19 +62,14 @@ def prepare_site(base: str, synth) -> int:
         return site["id"]
 
 
-async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, seconds: int, filter: str,
-                start_at: float, latencies: list, failures: list) -> tuple[str, int]:
+def walk(synth, i: int):
+    """Phone ``i``'s start and then its batches, one a second: 2 steps of 0.7 m and a scan."""
     rng = np.random.default_rng(i)
     x, y = float(rng.uniform(0, 12)), float(rng.uniform(0, 8))
     heading = float(rng.uniform(0, 360))
-    async with http.post(f"{API}/sessions", json={"site_id": site_id, "filter": filter,
-                                                  "initial": {"x": x, "y": y, "floor": 0}}) as r:
-        r.raise_for_status()
-        sid = (await r.json())["id"]
-    loop = asyncio.get_running_loop()
-    t, ok = 0.0, 0
-    for seq in range(seconds):
-        await asyncio.sleep(max(0.0, start_at + seq - loop.time()))
+    yield {"x": x, "y": y, "floor": 0}
+    t, seq = 0.0, 0
+    while True:
         steps = []
         for _ in range(2):
             t += 0.5
@@ -82,7 +78,26 @@ async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, second
             x += 0.7 * math.sin(math.radians(heading))
             y += 0.7 * math.cos(math.radians(heading))
             steps.append({"t": t, "length_m": 0.7, "heading_deg": heading})
-        body = {"seq": seq, "steps": steps, "scans": [{"t": t + 0.01, "rss": synth.scan(x, y, 0, None, rng, 2.0)}]}
+        yield {"seq": seq, "steps": steps, "scans": [{"t": t + 0.01, "rss": synth.scan(x, y, 0, None, rng, 2.0)}]}
+        seq += 1
+
+
+async def open_session(http: aiohttp.ClientSession, site_id: int, filter: str, initial: dict) -> str:
+    async with http.post(f"{API}/sessions", json={"site_id": site_id, "filter": filter, "initial": initial}) as r:
+        r.raise_for_status()
+        return (await r.json())["id"]
+
+
+async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, seconds: int, filter: str,
+                start_at: float, latencies: list, failures: list) -> tuple[str, int]:
+    """Posts one batch a second from ``start_at``; a failed post is retried with the same seq."""
+    batches = walk(synth, 10_000 + i)
+    sid = await open_session(http, site_id, filter, next(batches))
+    loop = asyncio.get_running_loop()
+    ok = 0
+    for seq in range(seconds):
+        body = next(batches)
+        await asyncio.sleep(max(0.0, start_at + seq - loop.time()))
         for attempt in range(5):
             started = loop.time()
             try:
@@ -103,12 +118,35 @@ async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, second
     return sid, ok
 
 
-async def baseline(base: str, requests: int = 3000, concurrency: int = 64) -> float:
-    """Closed-loop capacity of ``GET /healthz`` (one ``SELECT 1``) in requests per second."""
+async def capacities(base: str, server_pid: int, site_id: int, synth, filter: str, requests: int = 3000,
+                     concurrency: int = 64) -> dict:
+    """Closed loop, same client and concurrency: ``GET /healthz`` (one ``SELECT 1``), then
+    batches from ``concurrency`` phones each posting its next batch once the last is answered.
+    Each with the server's CPU time per request."""
     async with client(base, DEVICE, concurrency) as http:
         await closed_loop(http, lambda i: ("GET", "/healthz", None), 200, concurrency)  # warm up
+        cpu0 = cpu_seconds(server_pid)
         elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
-    return requests / elapsed
+        cpu1 = cpu_seconds(server_pid)
+        healthz_per_s = requests / elapsed
+        walks = [walk(synth, i) for i in range(concurrency)]
+        sessions = [await open_session(http, site_id, filter, next(w)) for w in walks]
+        per_phone = requests // concurrency
+
+        async def post_all(sid: str, batches) -> None:
+            for _ in range(per_phone):
+                async with http.post(f"{API}/sessions/{sid}/batches", json=next(batches)) as r:
+                    await r.read()
+                    r.raise_for_status()
+
+        cpu2 = cpu_seconds(server_pid)
+        began = time.perf_counter()
+        await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks)))
+        batches_per_s = per_phone * concurrency / (time.perf_counter() - began)
+        cpu3 = cpu_seconds(server_pid)
+    per_request = None if cpu0 is None else ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / (per_phone * concurrency) * 1e3)
+    return {"healthz_per_s": healthz_per_s, "batches_per_s": batches_per_s, "cpu_ms": per_request,
+            "sessions": [(sid, per_phone) for sid in sessions]}
 
 
 async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str):
@@ -159,25 +197,30 @@ def main() -> None:
         try:
             base = f"http://127.0.0.1:{args.port}"
             site_id = prepare_site(base, synth)
-            healthz_per_s = asyncio.run(baseline(base))
+            cap = asyncio.run(capacities(base, server.pid, site_id, synth, args.filter))
             sessions, lat, failures, elapsed = asyncio.run(
                 run(base, site_id, synth, args.phones, args.seconds, args.filter))
         finally:
             stop_server(server)
         lat_ms = np.array(lat) * 1000
         n = len(lat_ms)
+        print(f"capacity, closed loop, 64 phones: {cap['batches_per_s']:.0f} batches/s; baseline GET /healthz "
+              f"from the same client: {cap['healthz_per_s']:.0f} requests/s; ratio "
+              f"{cap['batches_per_s'] / cap['healthz_per_s']:.2f}")
+        if cap["cpu_ms"]:
+            healthz_ms, batch_ms = cap["cpu_ms"]
+            print(f"server CPU per request: batch {batch_ms:.2f} ms, healthz {healthz_ms:.2f} ms; "
+                  f"ratio {batch_ms / healthz_ms:.2f}")
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
               f"{url.split(':')[0]}): {n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
               f"(offered {args.phones}/s)")
-        print(f"baseline, GET /healthz closed loop from this process: {healthz_per_s:.0f} requests/s "
-              f"(batches answered/s = {n / elapsed / healthz_per_s:.2f}x baseline)")
         if n:
             print(f"batch latency ms: p50 {np.percentile(lat_ms, 50):.1f}  p90 {np.percentile(lat_ms, 90):.1f}  "
                   f"p99 {np.percentile(lat_ms, 99):.1f}  max {lat_ms.max():.1f}")
         print(f"failed or retried posts: {len(failures)}")
         for f in failures[:5]:
             print("  ", f)
-        problems = check_store(url, sessions)
+        problems = check_store(url, sessions + cap["sessions"])
         print(f"stored data: {'OK, no lost or doubled batches' if not problems else f'{len(problems)} sessions wrong'}")
         for p in problems[:5]:
             print("  ", p)

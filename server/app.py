@@ -15,7 +15,7 @@ from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
 from server.errors import ServiceError
-from server.schemas import SurveyIn
+from server.schemas import BatchIn, SurveyIn
 from server.services.positioning import ModelCache, Positioning
 from server.services.sessions import SessionService
 from server.services.training import TrainingWorker
@@ -54,7 +54,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessions = SessionService(app.state.db, app.state.positioning)
     for module in (health, sites, surveys, models, locate, sessions):
         app.include_router(module.router)
-    _document_survey_body(app)
+    _document_own_bodies(app)
     return app
 
 
@@ -71,17 +71,18 @@ async def _validation_error(_: Request, exc: RequestValidationError) -> JSONResp
     return JSONResponse({"detail": errors}, status_code=422)
 
 
-def _document_survey_body(app: FastAPI) -> None:
-    """The survey route reads its body itself (JSON or CSV); publish the JSON schema it enforces."""
+def _document_own_bodies(app: FastAPI) -> None:
+    """The survey and batch routes read their bodies themselves; publish the JSON schemas they enforce."""
     build = app.openapi
 
     def openapi() -> dict:
         if app.openapi_schema is None:
             schema = build()
-            survey = SurveyIn.model_json_schema(ref_template="#/components/schemas/{model}")
             components = schema.setdefault("components", {}).setdefault("schemas", {})
-            components.update(survey.pop("$defs", {}))
-            components["SurveyIn"] = survey
+            for model in (SurveyIn, BatchIn):
+                body = model.model_json_schema(ref_template="#/components/schemas/{model}")
+                components.update(body.pop("$defs", {}))
+                components[model.__name__] = body
         return app.openapi_schema
 
     app.openapi = openapi

@@ -71,7 +71,9 @@ class Database:
         self.url = url
         self.engine = make_engine(url)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
-        self._write_lock = SqliteWriteLock(make_url(url).database) if url.startswith("sqlite") else nullcontext()
+        #: an embedded database: every call is a local file access, never a network wait
+        self.embedded = url.startswith("sqlite")
+        self._write_lock = SqliteWriteLock(make_url(url).database) if self.embedded else nullcontext()
 
     @contextmanager
     def transaction(self, rollback_only: bool = False) -> Iterator[Session]:

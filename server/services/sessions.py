@@ -105,7 +105,8 @@ class SessionService:
             repo.close_tracking_session(s, session_id)
 
     # -- feed --------------------------------------------------------------------------------
-    def feed(self, principal: Principal, session_id: str, batch: BatchIn) -> BatchResult:
+    def feed(self, principal: Principal, session_id: str, batch: BatchIn) -> dict[str, Any]:
+        """Apply the batch; answers the ``BatchResult`` as JSON-ready data (also what a replay gets)."""
         if len(batch.steps) > MAX_BATCH_STEPS:
             raise TooLarge([{"field": "steps", "msg": f"{len(batch.steps)} steps > {MAX_BATCH_STEPS} in one batch"}])
         if len(batch.scans) > MAX_BATCH_SCANS:
@@ -123,7 +124,7 @@ class SessionService:
                             [{"field": "seq", "msg": f"seq {batch.seq} is below the last applied seq {row.last_seq} "
                               "and was never applied; batches cannot be applied out of order"}]
                         )
-                    return BatchResult(**answer)
+                    return answer
             if row.status != "open":
                 raise Conflict([{"field": "session", "msg": f"session {session_id} is closed"}])
             # 2. compute against that state
@@ -137,7 +138,7 @@ class SessionService:
                 ):
                     if outcome.crowd:
                         self._crowdsource(conn, row.site_id, outcome.crowd)
-                    return BatchResult(**outcome.answer)
+                    return outcome.answer
             # lost the race (nothing was written): start over from the stored state
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
