@@ -272,6 +272,10 @@ class BatchResult(BaseModel):
     skipped_scans: list[SkippedScan] = Field(
         [], description="Scans that gave no fix (no ready model, no known transmitter), with why."
     )
+    rejected_fixes: list[SkippedScan] = Field(
+        [], description="Applied scans whose fingerprint fix the innovation gate refused as an outlier "
+        "(their beacon ranges still applied), with why."
+    )
 
 
 class SessionOut(BaseModel):

@@ -27,6 +27,13 @@ from server.estimation.types import Fix, Scan, Step
 #: initial covariance (m²) when the phone gives a start position without one
 DEFAULT_INITIAL_VAR_M2 = 1.0
 STATE_VERSION = 1
+#: innovation gate: a fix whose squared Mahalanobis distance from the estimate, under the
+#: tracker's covariance plus the fix's, exceeds χ²(2 dof, 0.999) is an outlier (a fingerprint
+#: match in the wrong place) and moves nothing
+GATE_D2 = 13.82
+#: after this many gated fixes in a row the tracker, not the fixes, is taken to be lost: the
+#: next fix restarts it there
+MAX_GATED_IN_A_ROW = 3
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,10 @@ class SessionEstimator:
         self.estimate: dict[str, Any] | None = None
         #: set (not stored) when the initial estimate, opened without a time, got one now
         self.init_t: float | None = None
+        #: fixes refused by the innovation gate since the last accepted one
+        self.gated_in_a_row = 0
+        #: why the last scan's fix was refused (None: it was used); not stored
+        self.rejected: str | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -115,8 +126,11 @@ class SessionEstimator:
         walls_of: Callable[[int], Any],
     ) -> dict[str, Any]:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on
-        its first fix. ``walls_of(level)`` gives a floor's walls when the floor changes."""
+        its first fix. ``walls_of(level)`` gives a floor's walls when the floor changes.
+        A fix that fails the innovation gate moves nothing (``rejected`` says why); the
+        scan's beacon ranges and landmarks still apply."""
         self.advance(scan.t)
+        self.rejected = None
         if not self.started:
             return self.start(fix.mean, fix.covariance, fix.floor, walls_of(fix.floor), scan.t, "scan")
         floor_before = self.floors.floor
@@ -125,7 +139,7 @@ class SessionEstimator:
             self.tracker.set_walls(walls_of(self.floors.floor))
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
         elif fix.floor == floor_before:
-            self.tracker.update(fix)
+            self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)
         floor = self.floors.floor
         if self.tracker.supports_range:
@@ -141,6 +155,21 @@ class SessionEstimator:
             apply_snap(self.tracker, snap)
         return self._record(scan.t, "scan")
 
+    def _update(self, fix: Fix) -> None:
+        """Update with the fix unless the innovation gate refuses it; restart at the fix when
+        the gate has refused ``MAX_GATED_IN_A_ROW`` in a row."""
+        R = fix_cov(fix.covariance)
+        innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
+        S = np.asarray(self.tracker.covariance, float) + R
+        d2 = float(innovation @ np.linalg.solve(S, innovation))
+        if d2 <= GATE_D2 or self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
+            self.gated_in_a_row = 0
+            self.tracker.update(fix)
+        else:
+            self.gated_in_a_row += 1
+            self.rejected = (f"fix {float(np.hypot(*innovation)):.1f} m from the estimate is an outlier "
+                             f"(squared Mahalanobis distance {d2:.1f} > {GATE_D2})")
+
     # -- persistence ----------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -152,6 +181,7 @@ class SessionEstimator:
             "landmarks": self.landmarks.to_dict(),
             "last_t": self.last_t,
             "estimate": self.estimate,
+            "gated_in_a_row": self.gated_in_a_row,
         }
 
     @classmethod
@@ -164,6 +194,7 @@ class SessionEstimator:
         obj.landmarks = LandmarkCorrector.from_dict(d["landmarks"])
         obj.last_t = d["last_t"]
         obj.estimate = d["estimate"]
+        obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         return obj
 
 

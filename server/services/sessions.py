@@ -161,7 +161,7 @@ class SessionService:
                 raise Invalid(late[:100])
         beacons = site.beacons
         walls_of = lambda level: site.walls.get(level, [])  # noqa: E731
-        estimates, crowd, skipped = [], [], []
+        estimates, crowd, skipped, rejected = [], [], [], []
         applied_steps = applied_scans = 0
         for kind, i, item in time_order(steps, scans):
             if kind == "step":
@@ -180,6 +180,9 @@ class SessionService:
             e = est.scan(item, fix, beacons, walls_of)
             applied_scans += 1
             estimates.append(e)
+            if est.rejected:
+                rejected.append(SkippedScan(index=i, reason=est.rejected))
+                continue
             # Crowdsourcing: a tight estimate that agrees with the model's own fix for the scan
             # (never the cold-start scan: there the estimate *is* the fix).
             if (
@@ -195,6 +198,7 @@ class SessionService:
             applied_steps=applied_steps,
             applied_scans=applied_scans,
             skipped_scans=skipped,
+            rejected_fixes=rejected,
         ).model_dump(mode="json")
         return _Outcome(answer, est.to_dict(), estimates, crowd, est.init_t)
 

@@ -207,6 +207,15 @@ def test_scan_with_no_known_transmitter_is_skipped_not_fatal(device, site, posit
     assert "known" in r["skipped_scans"][0]["reason"]
 
 
+def test_an_outlier_fix_is_reported_and_does_not_move_the_estimate(device, site, positioning):
+    sid = open_session(device, site, "ekf")["id"]  # at (1, 2), 1 m²
+    scans = [{"t": 0.5, "rss": {"wifi:ap3": -40.0}}]  # the fake model puts this at ap3: (0, 10)
+    r = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": scans}).json()
+    assert r["applied_scans"] == 1 and [f["index"] for f in r["rejected_fixes"]] == [0]
+    assert "outlier" in r["rejected_fixes"][0]["reason"]
+    assert (r["estimate"]["x"], r["estimate"]["y"]) == pytest.approx((1.0, 2.0))
+
+
 def test_floor_changes_after_three_agreeing_fixes(device, site, positioning):
     sid = open_session(device, site, "kf")["id"]
     up = [{"t": 0.1 * (i + 1), "rss": {"wifi:up1": -40}} for i in range(3)]

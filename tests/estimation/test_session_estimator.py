@@ -91,6 +91,37 @@ def test_landmark_snap_moves_onto_the_beacon():
     assert (e["x"], e["y"]) == pytest.approx((5.0, 0.0))
 
 
+def _scan_at(est: SessionEstimator, t: float, x: float, y: float) -> dict:
+    return est.scan(Scan(t, {"wifi:a": -60.0}), Fix(x, y, 0, np.eye(2) * 1.0), {}, lambda level: [])
+
+
+@pytest.mark.parametrize("name", tracker_names())
+def test_an_outlier_fix_is_refused_and_moves_nothing(name):
+    est = SessionEstimator(name, seed=3)
+    est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
+    before = (est.tracker.mean[0], est.tracker.mean[1])
+    e = _scan_at(est, 1.0, 40.0, 0.0)
+    assert est.rejected is not None and "40.0 m" in est.rejected
+    assert (e["x"], e["y"]) == pytest.approx(before)
+    e = _scan_at(est, 2.0, 2.0, 0.0)  # a plausible fix is used again
+    assert est.rejected is None and e["x"] > before[0] + 0.3 and est.gated_in_a_row == 0
+
+
+def test_a_run_of_refused_fixes_restarts_the_tracker_at_the_fix():
+    """The tracker, not the fixes, is lost: after MAX_GATED_IN_A_ROW refusals the next far fix
+    restarts it there; the count is part of the stored state."""
+    from server.estimation.session import MAX_GATED_IN_A_ROW
+
+    est = SessionEstimator("ekf", seed=3)
+    est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
+    for k in range(MAX_GATED_IN_A_ROW):
+        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+        _scan_at(est, float(k), 30.0, 30.0)
+        assert est.rejected is not None and est.gated_in_a_row == k + 1
+    e = _scan_at(est, 9.0, 30.0, 30.0)
+    assert est.rejected is None and (e["x"], e["y"]) == pytest.approx((30.0, 30.0))
+
+
 def test_time_order_is_stable_with_steps_first_at_equal_times():
     steps = [Step(2.0, 0.7, 0.0), Step(1.0, 0.7, 0.0)]
     scans = [Scan(1.0, {"wifi:a": -50.0})]
