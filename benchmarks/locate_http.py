@@ -26,6 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.http_load import client, closed_loop  # noqa: E402
 from server.estimation.fingerprint import from_bytes  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.upload import upload  # noqa: E402
@@ -46,22 +47,8 @@ def query_scans(path: Path, n: int, seed: int = 0) -> list[dict[str, float]]:
 
 
 async def fire(base: str, url: str, scans: list[dict], concurrency: int) -> tuple[float, list[float]]:
-    latencies: list[float] = []
-    queue = list(scans)
-    limits = httpx.Limits(max_connections=concurrency, max_keepalive_connections=concurrency)
-    async with httpx.AsyncClient(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, limits=limits,
-                                 timeout=60) as client:
-        async def worker() -> None:
-            while queue:
-                scan = queue.pop()
-                t0 = time.perf_counter()
-                answer = await client.post(url, json={"rss": scan})
-                latencies.append(time.perf_counter() - t0)
-                answer.raise_for_status()
-
-        started = time.perf_counter()
-        await asyncio.gather(*(worker() for _ in range(concurrency)))
-        return time.perf_counter() - started, latencies
+    async with client(base, DEVICE, concurrency) as http:
+        return await closed_loop(http, lambda i: ("POST", url, {"rss": scans[i]}), len(scans), concurrency)
 
 
 def main() -> None:
