@@ -9,7 +9,6 @@ database which model serves the site, never re-reads an artifact.
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -24,6 +23,7 @@ from server.estimation.fingerprint import (
     from_bytes,
 )
 from server.estimation.types import Fix
+from server.services.lru import Lru
 
 
 #: (model id, algorithm, artifact SHA-256) of a ready model
@@ -42,16 +42,17 @@ class ModelCache:
 
     def __init__(self, db: Database, size: int = 8):
         self._db = db
-        self._size = size
-        self._models: OrderedDict[str, FingerprintModel] = OrderedDict()
-        self._lock = threading.Lock()
+        self._models: Lru[str, FingerprintModel] = Lru(size)
+        self._loading = threading.Lock()  # one load at a time: two requests never load one model twice
         self.loads = 0
 
     def get(self, model_id: int, sha256: str) -> FingerprintModel:
-        with self._lock:
+        model = self._models.get(sha256)
+        if model is not None:
+            return model
+        with self._loading:
             model = self._models.get(sha256)
             if model is not None:
-                self._models.move_to_end(sha256)
                 return model
             with self._db.transaction() as s:
                 artifact = repo.model_artifact(s, model_id)
@@ -62,9 +63,7 @@ class ModelCache:
                 raise ArtifactError(f"model {model_id}: artifact does not match its recorded SHA-256")
             model = from_bytes(blob)
             self.loads += 1
-            self._models[sha256] = model
-            if len(self._models) > self._size:
-                self._models.popitem(last=False)
+            self._models.put(sha256, model)
             return model
 
 

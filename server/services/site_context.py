@@ -10,8 +10,6 @@ through any process is seen by the next batch of every process.
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,6 +17,7 @@ from server import repositories as repo
 from server.db import Database
 from server.errors import NotFound
 from server.estimation.session import Beacon
+from server.services.lru import Lru
 from server.services.positioning import ServingModel
 
 
@@ -37,22 +36,13 @@ class SiteContexts:
 
     def __init__(self, db: Database, size: int = 256):
         self._db = db
-        self._size = size
-        self._contexts: OrderedDict[int, SiteContext] = OrderedDict()
-        self._lock = threading.Lock()
+        self._contexts: Lru[int, SiteContext] = Lru(size)
 
     def get(self, site_id: int, revision: str) -> SiteContext:
-        with self._lock:
-            context = self._contexts.get(site_id)
-            if context is not None and context.revision == revision:
-                self._contexts.move_to_end(site_id)
-                return context
-        context = self._load(site_id)
-        with self._lock:
-            self._contexts[site_id] = context
-            self._contexts.move_to_end(site_id)
-            if len(self._contexts) > self._size:
-                self._contexts.popitem(last=False)
+        context = self._contexts.get(site_id)
+        if context is None or context.revision != revision:
+            context = self._load(site_id)
+            self._contexts.put(site_id, context)
         return context
 
     def _load(self, site_id: int) -> SiteContext:
