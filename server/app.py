@@ -15,7 +15,7 @@ from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
 from server.errors import ServiceError
-from server.schemas import BatchIn, SurveyIn
+from server.schemas import BatchIn, LocateIn, SurveyIn
 from server.services.positioning import ModelCache, Positioning
 from server.services.sessions import SessionService
 from server.services.training import TrainingWorker
@@ -72,14 +72,14 @@ async def _validation_error(_: Request, exc: RequestValidationError) -> JSONResp
 
 
 def _document_own_bodies(app: FastAPI) -> None:
-    """The survey and batch routes read their bodies themselves; publish the JSON schemas they enforce."""
+    """The survey, batch and locate routes read their bodies themselves; publish the JSON schemas they enforce."""
     build = app.openapi
 
     def openapi() -> dict:
         if app.openapi_schema is None:
             schema = build()
             components = schema.setdefault("components", {}).setdefault("schemas", {})
-            for model in (SurveyIn, BatchIn):
+            for model in (SurveyIn, BatchIn, LocateIn):
                 body = model.model_json_schema(ref_template="#/components/schemas/{model}")
                 components.update(body.pop("$defs", {}))
                 components[model.__name__] = body

@@ -504,14 +504,21 @@ def list_models(s: Session, site_id: int) -> Sequence[Model]:
     return s.scalars(select(Model).where(Model.site_id == site_id).order_by(Model.id)).all()
 
 
-def serving_model(s: Session, site_id: int, model_id: int | None) -> tuple[int, str, str, str | None] | None:
+_SERVING = (
+    select(Model.id, Model.algorithm, Model.status, ModelArtifact.sha256)
+    .outerjoin(ModelArtifact, ModelArtifact.model_id == Model.id)
+    .where(Model.site_id == bindparam("site_id"))
+)
+_SERVING_ACTIVE = _SERVING.where(Model.active.is_(True))
+_SERVING_CHOSEN = _SERVING.where(Model.id == bindparam("model_id"))
+
+
+def serving_model(s: Session | Connection, site_id: int, model_id: int | None) -> tuple[int, str, str, str | None] | None:
     """(id, algorithm, status, artifact SHA-256) of ``model_id`` on the site, or of the site's active model."""
-    chosen = Model.id == model_id if model_id is not None else Model.active.is_(True)
-    row = s.execute(
-        select(Model.id, Model.algorithm, Model.status, ModelArtifact.sha256)
-        .outerjoin(ModelArtifact, ModelArtifact.model_id == Model.id)
-        .where(Model.site_id == site_id, chosen)
-    ).first()
+    if model_id is None:
+        row = s.execute(_SERVING_ACTIVE, {"site_id": site_id}).first()
+    else:
+        row = s.execute(_SERVING_CHOSEN, {"site_id": site_id, "model_id": model_id}).first()
     return tuple(row) if row else None
 
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import JSONResponse
 
 from server.api.deps import Device
+from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.schemas import CandidateOut, LocateIn, LocateOut
 
 router = APIRouter(prefix="/api/v1/sites", tags=["locate"])
@@ -13,15 +15,19 @@ router = APIRouter(prefix="/api/v1/sites", tags=["locate"])
 @router.post(
     "/{site_id}/locate",
     response_model=LocateOut,
+    openapi_extra=json_body_doc(LocateIn),
     responses={409: {"description": "The site has no ready model."},
                422: {"description": "No transmitter of the scan is known to the model."}},
 )
-def locate(site_id: int, body: LocateIn, request: Request, _: Device) -> LocateOut:
-    located = request.app.state.positioning.locate(site_id, body.rss, body.heading_deg, body.model_id)
+async def locate(site_id: int, request: Request, _: Device) -> Response:
+    body = await read_json(request, LocateIn)
+    located = await run_blocking(
+        request, request.app.state.positioning.locate, site_id, body.rss, body.heading_deg, body.model_id
+    )
     fix = located.fix
-    return LocateOut(
+    return JSONResponse(LocateOut(
         x=fix.x, y=fix.y, floor=fix.floor, covariance=fix.covariance.tolist(),
         model_id=located.model_id, algorithm=located.algorithm, reference_point=fix.reference_point,
         candidates=[CandidateOut(label=c.label, x=c.x, y=c.y, floor=c.floor, probability=c.probability)
                     for c in fix.candidates],
-    )
+    ).model_dump(mode="json"))

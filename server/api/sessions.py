@@ -2,22 +2,17 @@
 
 from __future__ import annotations
 
-from functools import partial
-
 from fastapi import APIRouter, Request, Response, status
-from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import ValidationError
-from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import Device
+from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.schemas import BatchIn, BatchResult, EstimateOut, SessionIn, SessionOut
 from server.services.sessions import SessionService
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 
 _NOT_YOURS = {404: {"description": "No such session, or it was opened with another device key."}}
-_BATCH_BODY = {"requestBody": {"required": True, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/BatchIn"}}}}}
 
 
 def _service(request: Request) -> SessionService:
@@ -33,7 +28,7 @@ def open_session(body: SessionIn, request: Request, principal: Device) -> Sessio
 @router.post(
     "/{session_id}/batches",
     response_model=BatchResult,
-    openapi_extra=_BATCH_BODY,
+    openapi_extra=json_body_doc(BatchIn),
     responses={
         **_NOT_YOURS,
         409: {"description": "Session closed, or a seq below the last applied one that was never applied."},
@@ -43,20 +38,9 @@ def open_session(body: SessionIn, request: Request, principal: Device) -> Sessio
 )
 async def post_batch(session_id: str, request: Request, principal: Device) -> Response:
     """Apply a batch once; a batch whose seq was already applied gets the stored answer again.
-
-    The hottest route reads its body itself: pydantic parses and validates the JSON in one
-    pass, and the answer (plain JSON, as stored for replays) is sent as it is."""
-    try:
-        batch = BatchIn.model_validate_json(await request.body())
-    except ValidationError as exc:
-        raise RequestValidationError(
-            [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False, include_input=False)]
-        ) from None
-    feed = partial(_service(request).feed, principal, session_id, batch)
-    # On SQLite the batch is applied right here on the event loop: its database calls are
-    # local file accesses of a fraction of a millisecond, and handing it to a thread costs
-    # more CPU than that (GIL hand-offs); a networked database's waits go to the thread pool.
-    return JSONResponse(feed() if request.app.state.db.embedded else await run_in_threadpool(feed))
+    The answer is sent as stored (plain JSON), which is also what a replay gets."""
+    batch = await read_json(request, BatchIn)
+    return JSONResponse(await run_blocking(request, _service(request).feed, principal, session_id, batch))
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)

@@ -74,9 +74,10 @@ class Positioning:
 
     def serving_model(self, site_id: int, model_id: int | None = None) -> ServingModel:
         """(id, algorithm, artifact SHA-256) of the model that answers for the site: 404/409 when there is none."""
-        with self._db.transaction() as s:
-            found = repo.serving_model(s, site_id, model_id)
-            if found is None:
+        with self._db.read() as conn:
+            found = repo.serving_model(conn, site_id, model_id)
+        if found is None:
+            with self._db.transaction() as s:
                 if repo.get_site(s, site_id) is None:
                     raise NotFound(f"site {site_id} does not exist")
                 if model_id is not None:
