@@ -311,6 +311,20 @@ def add_tracking_session(
     return row
 
 
+def list_tracking_sessions(
+    s: Session, owner_key: str | None, site_id: int | None, status: str | None, limit: int
+) -> Sequence[TrackingSession]:
+    """Newest first; ``owner_key`` None lists every owner's."""
+    query = select(TrackingSession).order_by(TrackingSession.created_at.desc(), TrackingSession.id).limit(limit)
+    if owner_key is not None:
+        query = query.where(TrackingSession.owner_key == owner_key)
+    if site_id is not None:
+        query = query.where(TrackingSession.site_id == site_id)
+    if status is not None:
+        query = query.where(TrackingSession.status == status)
+    return s.scalars(query).all()
+
+
 def get_tracking_session(s: Session, session_id: str) -> TrackingSession | None:
     return s.scalar(select(TrackingSession).where(TrackingSession.id == session_id).execution_options(populate_existing=True))
 

@@ -200,6 +200,7 @@ class TrackingSession(Base):
     """A walking session; its tracker state is stored so any server process can serve it."""
 
     __tablename__ = "tracking_sessions"
+    __table_args__ = (Index("ix_tracking_sessions_owner_created", "owner_key", "created_at"),)
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)
     owner_key: Mapped[str] = mapped_column(String(64))  # hash of the key that opened it

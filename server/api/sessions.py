@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response, status
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 
 from server.api.deps import Device
@@ -41,6 +43,19 @@ async def post_batch(session_id: str, request: Request, principal: Device) -> Re
     The answer is sent as stored (plain JSON), which is also what a replay gets."""
     batch = await read_json(request, BatchIn)
     return JSONResponse(await run_blocking(request, _service(request).feed, principal, session_id, batch))
+
+
+@router.get("", response_model=list[SessionOut])
+def list_sessions(
+    request: Request,
+    principal: Device,
+    site_id: Annotated[int | None, Query(description="Only this site's sessions.")] = None,
+    status: Annotated[Literal["open", "closed"] | None, Query(description="Only open or only closed sessions.")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000, description="At most this many, newest first.")] = 100,
+) -> list[SessionOut]:
+    """The sessions opened with the caller's key (an admin key sees every session), newest
+    first: a phone that restarts can find the session it was feeding."""
+    return _service(request).list(principal, site_id, status, limit)
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)

@@ -86,6 +86,12 @@ class SessionService:
             )
             return _session_out(row)
 
+    def list(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionOut]:
+        """The caller's sessions (every session for an admin key), newest first."""
+        owner = None if principal.scope == "admin" else principal.key_hash
+        with self.db.transaction() as s:
+            return [_session_out(row) for row in repo.list_tracking_sessions(s, owner, site_id, status, limit)]
+
     def get(self, principal: Principal, session_id: str) -> SessionOut:
         with self.db.transaction() as s:
             return _session_out(_owned(s, principal, session_id))

@@ -386,6 +386,28 @@ def test_another_device_cannot_see_or_feed_a_session_but_an_admin_can(live_serve
     assert device.get(f"/api/v1/sessions/{mine}").status_code == 404
 
 
+def test_a_device_lists_its_own_sessions_newest_first_and_an_admin_lists_all(live_server, device, admin, site):
+    from server.auth import create_key
+    from server.db import Database
+
+    db = Database(live_server.app.state.settings.database_url)
+    _, other_key = create_key(db, "phone 3", "device")
+    db.dispose()
+    first, second = open_session(device, site)["id"], open_session(device, site)["id"]
+    assert device.delete(f"/api/v1/sessions/{first}").status_code == 204
+    with httpx.Client(base_url=live_server.url, headers={"Authorization": f"Bearer {other_key}"}) as other:
+        theirs = open_session(other, site)["id"]
+        assert [x["id"] for x in other.get("/api/v1/sessions").json()] == [theirs]
+    assert [x["id"] for x in device.get("/api/v1/sessions").json()] == [second, first]
+    assert [x["id"] for x in device.get("/api/v1/sessions", params={"status": "open"}).json()] == [second]
+    assert [x["id"] for x in device.get("/api/v1/sessions", params={"limit": 1}).json()] == [second]
+    assert device.get("/api/v1/sessions", params={"site_id": site + 1}).json() == []
+    assert {x["id"] for x in admin.get("/api/v1/sessions").json()} == {first, second, theirs}
+    for bad in ({"limit": 0}, {"limit": 1001}, {"status": "done"}):
+        answer = device.get("/api/v1/sessions", params=bad)
+        assert answer.status_code == 422 and next(iter(bad)) in answer.text
+
+
 # --- persistence and concurrency ---------------------------------------------------------------
 
 
