@@ -40,14 +40,14 @@ class SqliteWriteLock:
     SQLite has a single writer, and writers that collide on its lock wait in its busy
     handler, which sleeps 1, 2, 5, 10 … 100 ms between tries: under load the lock is
     often free while every writer sleeps. Here the threads of a process queue on a Python
-    lock and the processes on an ``flock`` of a file beside the database, and both wake
-    the next writer the moment the last one is done."""
+    lock and the processes on an ``flock`` of ``<database>-writelock`` (beside SQLite's own
+    ``-wal`` and ``-shm``), and both wake the next writer the moment the last one is done."""
 
     def __init__(self, path: str | None):
         self._threads = threading.Lock()
         self._fd = None
         if fcntl is not None and path and path != ":memory:" and not path.startswith("file:"):
-            self._fd = os.open(f"{path}.write-lock", os.O_RDWR | os.O_CREAT, 0o644)
+            self._fd = os.open(f"{path}-writelock", os.O_RDWR | os.O_CREAT, 0o644)
 
     def __enter__(self) -> None:
         self._threads.acquire()

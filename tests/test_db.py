@@ -1,0 +1,49 @@
+"""SQLite's write lock: one write transaction at a time, across processes too."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from server.db import SqliteWriteLock
+
+
+def test_a_second_holder_waits_until_the_first_is_done(tmp_path):
+    # Two locks on one database are two open files, as in two server processes:
+    # only the flock keeps them apart (each has its own thread lock).
+    path = str(tmp_path / "x.db")
+    first, second = SqliteWriteLock(path), SqliteWriteLock(path)
+    events: list[str] = []
+
+    def writer() -> None:
+        with second:
+            events.append("second in")
+
+    with first:
+        thread = threading.Thread(target=writer)
+        thread.start()
+        time.sleep(0.2)
+        events.append("first out")
+    thread.join(5)
+    assert events == ["first out", "second in"]
+    assert (tmp_path / "x.db-writelock").exists()
+
+
+def test_threads_of_one_process_take_turns(tmp_path):
+    lock = SqliteWriteLock(str(tmp_path / "y.db"))
+    inside, most = [0], [0]
+
+    def writer() -> None:
+        for _ in range(30):
+            with lock:
+                inside[0] += 1
+                most[0] = max(most[0], inside[0])
+                time.sleep(0.001)  # give the other threads every chance to come in
+                inside[0] -= 1
+
+    threads = [threading.Thread(target=writer) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10)
+    assert most[0] == 1
