@@ -45,23 +45,31 @@ class SqliteWriteLock:
 
     def __init__(self, path: str | None):
         self._threads = threading.Lock()
-        self._fd = None
-        if fcntl is not None and path and path != ":memory:" and not path.startswith("file:"):
-            self._fd = os.open(f"{path}-writelock", os.O_RDWR | os.O_CREAT, 0o644)
+        usable = fcntl is not None and path and path != ":memory:" and not path.startswith("file:")
+        self._path = f"{path}-writelock" if usable else None
+        self._fd: int | None = None
 
     def __enter__(self) -> None:
         self._threads.acquire()
-        if self._fd is not None:
-            try:
+        try:
+            if self._path is not None:
+                if self._fd is None:  # opened on first use: read-only users never create the file
+                    self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o644)
                 fcntl.flock(self._fd, fcntl.LOCK_EX)
-            except BaseException:
-                self._threads.release()
-                raise
+        except BaseException:
+            self._threads.release()
+            raise
 
     def __exit__(self, *_exc) -> None:
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
         self._threads.release()
+
+    def close(self) -> None:
+        with self._threads:
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
 
 
 class Database:
@@ -93,9 +101,14 @@ class Database:
         """A Core connection for reads (``with db.read() as conn``); nothing it does is committed."""
         return self.engine.connect()
 
-    def write(self):
-        """A Core connection in a transaction that commits on success (``with db.write() as conn``)."""
-        return self.engine.begin()
+    @contextmanager
+    def write(self) -> Iterator[Connection]:
+        """A Core connection in a transaction that commits on success (``with db.write() as conn``);
+        on SQLite, one such transaction at a time (``SqliteWriteLock``)."""
+        with self._write_lock, self.engine.begin() as conn:
+            yield conn
 
     def dispose(self) -> None:
         self.engine.dispose()
+        if isinstance(self._write_lock, SqliteWriteLock):
+            self._write_lock.close()

@@ -47,3 +47,35 @@ def test_threads_of_one_process_take_turns(tmp_path):
     for t in threads:
         t.join(10)
     assert most[0] == 1
+
+
+def test_database_writes_take_the_lock(tmp_path):
+    """Two Database objects on one file, as two server processes: the second write
+    transaction starts only when the first has committed."""
+    from sqlalchemy import text
+
+    from server.db import Database
+
+    url = f"sqlite:///{tmp_path / 'z.db'}"
+    first, second = Database(url), Database(url)
+    events: list[str] = []
+
+    def writer() -> None:
+        with second.write() as conn:
+            events.append("second in")
+            conn.execute(text("INSERT INTO t VALUES (2)"))
+
+    try:
+        with first.write() as conn:
+            conn.execute(text("CREATE TABLE t (x INTEGER)"))
+            thread = threading.Thread(target=writer)
+            thread.start()
+            time.sleep(0.2)
+            events.append("first out")
+        thread.join(5)
+        assert events == ["first out", "second in"]
+        with first.read() as conn:
+            assert conn.execute(text("SELECT count(*) FROM t")).scalar() == 1
+    finally:
+        first.dispose()
+        second.dispose()

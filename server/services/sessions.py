@@ -130,6 +130,7 @@ class SessionService:
                             [{"field": "seq", "msg": f"seq {batch.seq} is below the last applied seq {row.last_seq} "
                               "and was never applied; batches cannot be applied out of order"}]
                         )
+                    answer.setdefault("rejected_fixes", [])  # answers stored before the innovation gate
                     return answer
             if row.status != "open":
                 raise Conflict([{"field": "session", "msg": f"session {session_id} is closed"}])
