@@ -5,7 +5,25 @@ from __future__ import annotations
 import threading
 import time
 
-from server.db import SqliteWriteLock
+from server.db import Database, SqliteWriteLock
+
+
+def _entry_order(hold, then) -> list[str]:
+    """Enter ``hold()`` while a thread tries to enter ``then()``: the order in which the
+    first is left and the second entered."""
+    events: list[str] = []
+
+    def other() -> None:
+        with then():
+            events.append("second in")
+
+    with hold():
+        thread = threading.Thread(target=other)
+        thread.start()
+        time.sleep(0.2)
+        events.append("first out")
+    thread.join(5)
+    return events
 
 
 def test_a_second_holder_waits_until_the_first_is_done(tmp_path):
@@ -13,20 +31,20 @@ def test_a_second_holder_waits_until_the_first_is_done(tmp_path):
     # only the flock keeps them apart (each has its own thread lock).
     path = str(tmp_path / "x.db")
     first, second = SqliteWriteLock(path), SqliteWriteLock(path)
-    events: list[str] = []
-
-    def writer() -> None:
-        with second:
-            events.append("second in")
-
-    with first:
-        thread = threading.Thread(target=writer)
-        thread.start()
-        time.sleep(0.2)
-        events.append("first out")
-    thread.join(5)
-    assert events == ["first out", "second in"]
+    assert _entry_order(lambda: first, lambda: second) == ["first out", "second in"]
     assert (tmp_path / "x.db-writelock").exists()
+
+
+def test_database_writes_take_the_lock(tmp_path):
+    """Two Database objects on one file, as two server processes: the second write
+    transaction starts only when the first has committed."""
+    url = f"sqlite:///{tmp_path / 'z.db'}"
+    first, second = Database(url), Database(url)
+    try:
+        assert _entry_order(first.write, second.write) == ["first out", "second in"]
+    finally:
+        first.dispose()
+        second.dispose()
 
 
 def test_threads_of_one_process_take_turns(tmp_path):
@@ -47,35 +65,3 @@ def test_threads_of_one_process_take_turns(tmp_path):
     for t in threads:
         t.join(10)
     assert most[0] == 1
-
-
-def test_database_writes_take_the_lock(tmp_path):
-    """Two Database objects on one file, as two server processes: the second write
-    transaction starts only when the first has committed."""
-    from sqlalchemy import text
-
-    from server.db import Database
-
-    url = f"sqlite:///{tmp_path / 'z.db'}"
-    first, second = Database(url), Database(url)
-    events: list[str] = []
-
-    def writer() -> None:
-        with second.write() as conn:
-            events.append("second in")
-            conn.execute(text("INSERT INTO t VALUES (2)"))
-
-    try:
-        with first.write() as conn:
-            conn.execute(text("CREATE TABLE t (x INTEGER)"))
-            thread = threading.Thread(target=writer)
-            thread.start()
-            time.sleep(0.2)
-            events.append("first out")
-        thread.join(5)
-        assert events == ["first out", "second in"]
-        with first.read() as conn:
-            assert conn.execute(text("SELECT count(*) FROM t")).scalar() == 1
-    finally:
-        first.dispose()
-        second.dispose()
