@@ -2,27 +2,36 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 import os
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
+
+import orjson
+from sqlalchemy import Connection, Engine, create_engine, event, make_url
+from sqlalchemy.orm import Session, sessionmaker
 
 try:
     import fcntl
 except ImportError:  # not on Windows: processes then meet in SQLite's own busy handler
     fcntl = None
 
-from sqlalchemy import Connection, Engine, create_engine, event, make_url
-from sqlalchemy.orm import Session, sessionmaker
+
+def _json_dumps(value) -> str:
+    """JSON columns through orjson: a batch stores its tracker state and answer, and the
+    standard library's encoder was ≈ 8 % of a batch's CPU. Non-string keys become strings
+    and NumPy scalars plain numbers, as ``json.dumps`` would make them."""
+    return orjson.dumps(value, option=orjson.OPT_NON_STR_KEYS | orjson.OPT_SERIALIZE_NUMPY).decode()
 
 
 def make_engine(url: str) -> Engine:
     """An engine for ``url``; SQLite connections are configured for concurrent use."""
+    json_codec = {"json_serializer": _json_dumps, "json_deserializer": orjson.loads}
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, **json_codec)
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20, **json_codec)
 
 
 def _sqlite_pragmas(dbapi_connection, _record) -> None:
