@@ -5,7 +5,8 @@ to Python objects first and validates those) and reports errors exactly as FastA
 ``run_blocking`` runs the route's synchronous work right on the event loop when the
 database is embedded (SQLite: every call a local file access of a fraction of a
 millisecond, where a thread-pool hop costs more CPU than that in GIL hand-offs), and in
-the thread pool when it is networked, so that waits on the network don't stall the process.
+the thread pool when it is networked, so that waits on the network don't stall the process,
+or when the work meets a slow path (``server.inline.WouldBlock``: a model to load).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
+
+from server.inline import WouldBlock, on_event_loop
 
 M = TypeVar("M", bound=BaseModel)
 T = TypeVar("T")
@@ -39,5 +42,11 @@ async def read_json(request: Request, model: type[M]) -> M:
 
 async def run_blocking(request: Request, work: Callable[..., T], *args: Any) -> T:
     if request.app.state.db.embedded:
-        return work(*args)
+        token = on_event_loop.set(True)
+        try:
+            return work(*args)
+        except WouldBlock:
+            pass  # it wrote nothing: run it again where it may wait
+        finally:
+            on_event_loop.reset(token)
     return await run_in_threadpool(work, *args)

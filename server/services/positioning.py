@@ -23,6 +23,7 @@ from server.estimation.fingerprint import (
     from_bytes,
 )
 from server.estimation.types import Fix
+from server.inline import WouldBlock, on_event_loop
 from server.services.lru import Lru
 
 
@@ -38,7 +39,8 @@ class Located:
 
 
 class ModelCache:
-    """Loaded models by artifact SHA-256, least recently used dropped first; loads are checksum-verified."""
+    """Loaded models by artifact SHA-256, least recently used dropped first; loads are checksum-verified.
+    Work on the event loop gets ``WouldBlock`` instead of a load (see ``server.inline``)."""
 
     def __init__(self, db: Database, size: int = 8):
         self._db = db
@@ -50,6 +52,8 @@ class ModelCache:
         model = self._models.get(sha256)
         if model is not None:
             return model
+        if on_event_loop.get():
+            raise WouldBlock(f"model {model_id} is not loaded in this process yet")
         with self._loading:
             model = self._models.get(sha256)
             if model is not None:
