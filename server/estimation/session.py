@@ -31,8 +31,8 @@ STATE_VERSION = 1
 #: tracker's covariance plus the fix's, exceeds χ²(2 dof, 0.999) is an outlier (a fingerprint
 #: match in the wrong place) and moves nothing
 GATE_D2 = 13.82
-#: after this many gated fixes in a row the tracker, not the fixes, is taken to be lost: the
-#: next fix restarts it there
+#: after this many gated fixes in a row the tracker, not the fixes, may be lost: the next fix
+#: is used whatever its distance
 MAX_GATED_IN_A_ROW = 3
 
 
@@ -156,8 +156,8 @@ class SessionEstimator:
         return self._record(scan.t, "scan")
 
     def _update(self, fix: Fix) -> None:
-        """Update with the fix unless the innovation gate refuses it; restart at the fix when
-        the gate has refused ``MAX_GATED_IN_A_ROW`` in a row."""
+        """Update with the fix unless the innovation gate refuses it; after ``MAX_GATED_IN_A_ROW``
+        refusals in a row the next fix is used anyway, so a lost tracker is pulled back."""
         R = fix_cov(fix.covariance)
         innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
         S = np.asarray(self.tracker.covariance, float) + R
