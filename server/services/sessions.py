@@ -120,9 +120,7 @@ class SessionService:
         for _ in range(MAX_ATTEMPTS):
             # 1. read the session (no connection is held while computing, which may load a model)
             with self.db.read() as conn:
-                row = repo.feed_state(conn, session_id)
-                if row is None or (principal.scope != "admin" and row.owner_key != principal.key_hash):
-                    raise NotFound(f"session {session_id} does not exist")
+                row = _visible(repo.feed_state(conn, session_id), principal, session_id)
                 if batch.seq <= row.last_seq:
                     answer = repo.batch_answer(conn, session_id, batch.seq)
                     if answer is None:
@@ -255,9 +253,12 @@ class SessionService:
 
 
 def _owned(s, principal: Principal, session_id: str):
-    """The session, if the caller may see it: its own device key, or any admin key. Others get 404,
-    so that session ids of other phones are not even confirmed to exist."""
-    row = repo.get_tracking_session(s, session_id)
+    return _visible(repo.get_tracking_session(s, session_id), principal, session_id)
+
+
+def _visible(row, principal: Principal, session_id: str):
+    """The session row, if the caller may see it: its own device key, or any admin key. Others get
+    404, so that session ids of other phones are not even confirmed to exist."""
     if row is None or (principal.scope != "admin" and row.owner_key != principal.key_hash):
         raise NotFound(f"session {session_id} does not exist")
     return row
