@@ -31,6 +31,14 @@ from server.services.lru import Lru
 ServingModel = tuple[int, str, str]
 
 
+def ready_model(found: tuple | None) -> ServingModel | None:
+    """A row of ``repositories.serving_model`` as the model that serves, if it is ready to."""
+    if found is None:
+        return None
+    model_id, algorithm, status, sha256 = found
+    return (model_id, algorithm, sha256) if status == "ready" and sha256 is not None else None
+
+
 @dataclass(frozen=True)
 class Located:
     fix: Fix
@@ -87,10 +95,10 @@ class Positioning:
                 if model_id is not None:
                     raise NotFound(f"model {model_id} does not exist on site {site_id}")
                 raise Conflict(f"site {site_id} has no ready model: train one with POST /api/v1/sites/{site_id}/models")
-        found_id, algorithm, status, sha256 = found
-        if status != "ready" or sha256 is None:
-            raise Conflict(f"model {found_id} is {status}, not ready")
-        return found_id, algorithm, sha256
+        serving = ready_model(found)
+        if serving is None:
+            raise Conflict(f"model {found[0]} is {found[2]}, not ready")
+        return serving
 
     def locate(
         self,

@@ -18,7 +18,7 @@ from server.db import Database
 from server.errors import NotFound
 from server.estimation.session import Beacon
 from server.services.lru import Lru
-from server.services.positioning import ServingModel
+from server.services.positioning import ServingModel, ready_model
 
 
 @dataclass
@@ -50,7 +50,6 @@ class SiteContexts:
             found = repo.site_context(s, site_id)
         if found is None:
             raise NotFound(f"site {site_id} does not exist")
-        active = found["active_model"]
         return SiteContext(
             revision=found["revision"],
             settings=found["settings"],
@@ -60,5 +59,5 @@ class SiteContexts:
                 if t["y"] is not None
             },
             walls=found["walls"],
-            active_model=(active[0], active[1], active[3]) if active and active[2] == "ready" and active[3] else None,
+            active_model=ready_model(found["active_model"]),
         )
