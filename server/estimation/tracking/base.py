@@ -57,13 +57,19 @@ def as_mean(mean: Any) -> np.ndarray:
     return arr.copy()
 
 
-def as_cov(cov: Any) -> np.ndarray:
+def _symmetric_2x2(cov: Any, error: str) -> np.ndarray:
+    """``cov`` (a 2×2 matrix, or a scalar variance for both axes) as a symmetric float
+    array; ``ValueError(error)`` when it is neither or not finite."""
     arr = np.asarray(cov, dtype=float)
     if arr.shape == ():
         arr = np.eye(2) * float(arr)
     if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
-        raise ValueError("covariance must be a 2x2 matrix (or a scalar variance)")
-    arr = 0.5 * (arr + arr.T)
+        raise ValueError(error)
+    return 0.5 * (arr + arr.T)
+
+
+def as_cov(cov: Any) -> np.ndarray:
+    arr = _symmetric_2x2(cov, "covariance must be a 2x2 matrix (or a scalar variance)")
     # 2x2 positive definite ⇔ leading entry and determinant positive (cheaper than eigvalsh).
     if not (arr[0, 0] > 0 and arr[0, 0] * arr[1, 1] - arr[0, 1] * arr[1, 0] > 0):
         raise ValueError("covariance must be positive definite")
@@ -80,12 +86,7 @@ def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
     Fingerprint models can answer with a singular covariance (all posterior mass on
     one reference point); the floor keeps the update defined instead of raising.
     """
-    arr = np.asarray(cov, dtype=float)
-    if arr.shape == ():
-        arr = np.eye(2) * float(arr)
-    if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
-        raise ValueError("fix covariance must be a finite 2x2 matrix")
-    arr = 0.5 * (arr + arr.T)
+    arr = _symmetric_2x2(cov, "fix covariance must be a finite 2x2 matrix")
     a, b, c = arr[0, 0], arr[0, 1], arr[1, 1]
     lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
     if lam_min >= min_var:
