@@ -8,23 +8,17 @@ from fastapi import APIRouter, Header, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import DB, Admin
-from server.schemas import SurveyResult
+from server.api.fastpath import json_body_doc
+from server.schemas import SurveyIn, SurveyResult
 from server.services.surveys import ingest_survey
 
 router = APIRouter(prefix="/api/v1/sites", tags=["surveys"])
 
-_BODY_DOC = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "application/json": {"schema": {"$ref": "#/components/schemas/SurveyIn"}},
-            "text/csv": {
-                "schema": {"type": "string"},
-                "example": "x,y,floor,heading_deg,label,device,t,wifi:aa:bb:cc:dd:ee:ff,ble:lib-01\n"
-                "1.5,2.0,0,90,A1,pixel,0.0,-61,-70\n",
-            },
-        },
-    }
+_BODY_DOC = json_body_doc(SurveyIn)
+_BODY_DOC["requestBody"]["content"]["text/csv"] = {
+    "schema": {"type": "string"},
+    "example": "x,y,floor,heading_deg,label,device,t,wifi:aa:bb:cc:dd:ee:ff,ble:lib-01\n"
+    "1.5,2.0,0,90,A1,pixel,0.0,-61,-70\n",
 }
 
 
