@@ -27,8 +27,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.http_load import client, closed_loop  # noqa: E402
-from server.estimation.fingerprint import from_bytes  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
+from server.estimation.fingerprint import from_bytes  # noqa: E402
 from server.upload import upload  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"

@@ -103,7 +103,7 @@ async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, second
             try:
                 async with http.post(f"{API}/sessions/{sid}/batches", json=body) as r:
                     text = await r.text()
-            except (aiohttp.ClientError, asyncio.TimeoutError) as exc:
+            except (TimeoutError, aiohttp.ClientError) as exc:
                 failures.append(f"{sid} seq {seq}: retry after {type(exc).__name__}")
                 await asyncio.sleep(0.2 * (attempt + 1))
                 continue

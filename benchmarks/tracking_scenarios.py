@@ -28,13 +28,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from tracker_cost import bench  # noqa: E402
+
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
 from client_sim.runs import run_survey, track_phone  # noqa: E402
 from client_sim.server_process import free_port, start_server, stop_server  # noqa: E402
 from client_sim.world import get_world  # noqa: E402
-from tracker_cost import bench  # noqa: E402
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
 SCENARIOS = {"open_room": "good signal", "corridor_loop": "poor signal"}

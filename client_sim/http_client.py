@@ -38,7 +38,7 @@ class LocalizerClient:
             limits=httpx.Limits(max_connections=max_connections, max_keepalive_connections=max_connections),
         )
 
-    async def __aenter__(self) -> "LocalizerClient":
+    async def __aenter__(self) -> LocalizerClient:
         return self
 
     async def __aexit__(self, *exc) -> None:

@@ -32,10 +32,23 @@ from pathlib import Path
 import numpy as np
 
 from .http_client import ApiError, LocalizerClient
+from .msft import (
+    Walk,
+    beacon_scans,
+    calibration_window,
+    dead_reckon,
+    detect_steps,
+    errors_against,
+    fit_rotation_scale,
+    make_batches,
+    read_walk,
+    segment_displacements,
+    steps_from_events,
+    summarise,
+    survey_rows,
+    wifi_scans,
+)
 from .pdr.step_length import weinberg
-from .msft import (Walk, beacon_scans, calibration_window, dead_reckon, detect_steps, errors_against,
-                   fit_rotation_scale, make_batches, read_walk, segment_displacements, steps_from_events,
-                   summarise, survey_rows, wifi_scans)
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
 

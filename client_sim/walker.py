@@ -30,7 +30,7 @@ class Gait:
     length_jitter: float = 0.05
 
     @staticmethod
-    def random(rng: np.random.Generator) -> "Gait":
+    def random(rng: np.random.Generator) -> Gait:
         return Gait(
             step_freq_hz=float(rng.uniform(1.6, 2.1)),
             step_length_m=float(rng.uniform(0.6, 0.8)),

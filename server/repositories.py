@@ -9,7 +9,7 @@ service's hottest request, and the ORM's per-statement work was most of its cost
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from sqlalchemy import Connection, bindparam, delete, func, insert, select, update
 from sqlalchemy.orm import Session
@@ -53,7 +53,7 @@ def revoke_api_key(s: Session, key_id: int) -> bool:
     result = s.execute(
         update(ApiKey)
         .where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None))
-        .values(revoked_at=datetime.now(timezone.utc))
+        .values(revoked_at=datetime.now(UTC))
     )
     return result.rowcount == 1
 
@@ -421,7 +421,7 @@ def close_tracking_session(s: Session, session_id: str) -> bool:
     result = s.execute(
         update(TrackingSession)
         .where(TrackingSession.id == session_id, TrackingSession.status == "open")
-        .values(status="closed", closed_at=datetime.now(timezone.utc))
+        .values(status="closed", closed_at=datetime.now(UTC))
         .execution_options(synchronize_session=False)
     )
     return result.rowcount == 1
@@ -555,7 +555,7 @@ def claim_next_model(s: Session, stale_before: datetime) -> int | None:
                 Model.id == model_id,
                 (Model.status == "queued") | ((Model.status == "training") & (Model.claimed_at < stale_before)),
             )
-            .values(status="training", claimed_at=datetime.now(timezone.utc), error=None)
+            .values(status="training", claimed_at=datetime.now(UTC), error=None)
         )
         if taken.rowcount == 1:
             return model_id

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 from server import repositories as repo
 from server.db import Database
@@ -19,7 +19,7 @@ def queued_model(db: Database, name: str) -> int:
 def test_a_job_is_claimed_once_and_a_stale_claim_is_taken_again(clean_db):
     db = Database(clean_db)
     model_id = queued_model(db, "claims")
-    now = datetime.now(timezone.utc)
+    now = datetime.now(UTC)
     with db.transaction() as s:
         assert repo.claim_next_model(s, now - timedelta(minutes=30)) == model_id
     with db.transaction() as s:

@@ -185,7 +185,7 @@ class SessionEstimator:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "SessionEstimator":
+    def from_dict(cls, d: dict[str, Any]) -> SessionEstimator:
         if d.get("version") != STATE_VERSION:
             raise ValueError(f"unsupported session state version {d.get('version')!r}")
         obj = cls(d["filter"], d["seed"])

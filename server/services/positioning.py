@@ -26,7 +26,6 @@ from server.estimation.types import Fix
 from server.inline import WouldBlock, on_event_loop
 from server.services.lru import Lru
 
-
 #: (model id, algorithm, artifact SHA-256) of a ready model
 ServingModel = tuple[int, str, str]
 

@@ -18,7 +18,6 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
-
 from server import repositories as repo
 from server.auth import Principal
 from server.db import Database

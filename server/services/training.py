@@ -15,7 +15,7 @@ import math
 import multiprocessing
 import threading
 import traceback
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 from sqlalchemy.exc import IntegrityError
 
@@ -128,7 +128,7 @@ class TrainingWorker:
         done = 0
         while not self._stop.is_set():
             with self._db.transaction() as s:
-                model_id = repo.claim_next_model(s, datetime.now(timezone.utc) - self.stale_after)
+                model_id = repo.claim_next_model(s, datetime.now(UTC) - self.stale_after)
             if model_id is None:
                 return done
             self._train(model_id)

@@ -10,9 +10,9 @@ import json
 
 import httpx
 
+from client_sim.phone import simulate_phone
 from client_sim.report import write_report
 from client_sim.runs import make_batches, run_survey, run_track, survey_fingerprints
-from client_sim.phone import simulate_phone
 from client_sim.world import open_room
 
 

@@ -15,10 +15,23 @@ import numpy as np
 import pytest
 
 from client_sim.imu import ImuData
-from client_sim.msft import (StepEvents, beacon_scans, calibration_window, dead_reckon, errors_against,
-                             fit_rotation_scale, interpolate_waypoints, make_batches, read_walk,
-                             segment_displacements, steps_from_events, summarise, survey_rows, wifi_scans)
-from client_sim.msft_eval import default_split, select_walks, site_calibration, Prepared
+from client_sim.msft import (
+    StepEvents,
+    beacon_scans,
+    calibration_window,
+    dead_reckon,
+    errors_against,
+    fit_rotation_scale,
+    interpolate_waypoints,
+    make_batches,
+    read_walk,
+    segment_displacements,
+    steps_from_events,
+    summarise,
+    survey_rows,
+    wifi_scans,
+)
+from client_sim.msft_eval import Prepared, default_split, select_walks, site_calibration
 from client_sim.pdr.heading import GyroMagKalman, is_still
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "msft_synthetic_walk.txt"

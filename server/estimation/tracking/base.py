@@ -25,10 +25,10 @@ from server.estimation.types import Fix, Step
 
 FORMAT_VERSION = 1
 
-TRACKERS: dict[str, type["Tracker"]] = {}
+TRACKERS: dict[str, type[Tracker]] = {}
 
 
-def register(cls: type["Tracker"]) -> type["Tracker"]:
+def register(cls: type[Tracker]) -> type[Tracker]:
     """Class decorator: make a tracker constructible by its ``name``."""
     if not getattr(cls, "name", None):
         raise TypeError(f"{cls.__name__} has no name")
@@ -185,7 +185,7 @@ class Tracker(ABC):
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Tracker":
+    def from_dict(cls, data: dict[str, Any]) -> Tracker:
         """Restore a tracker stored by ``to_dict`` (dispatches on ``data["filter"]``)."""
         name = data.get("filter")
         target = TRACKERS.get(name) if cls is Tracker else cls

@@ -61,7 +61,7 @@ def make_crowd_point(x: float, y: float, floor: int, rss: dict[str, float]) -> d
         "floor": int(floor),
         "count": 1,
         "rss": {k: float(v) for k, v in rss.items()},
-        "counts": {k: 1 for k in rss},
+        "counts": dict.fromkeys(rss, 1),
     }
 
 

@@ -41,7 +41,6 @@ from server.estimation.tracking.base import as_mean, fix_cov_entries, register
 from server.estimation.tracking.kf import _LinearKF
 from server.estimation.types import Fix, Step, step_displacement
 
-
 SCALES = ("fix", "none")
 
 

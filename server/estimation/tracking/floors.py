@@ -39,7 +39,7 @@ class FloorTracker:
         return {"floor": self.floor, "required": self.required, "candidate": self.candidate, "count": self.count}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "FloorTracker":
+    def from_dict(cls, data: dict[str, Any]) -> FloorTracker:
         obj = cls(data["floor"], data["required"])
         obj.candidate = data["candidate"]
         obj.count = int(data["count"])

@@ -48,7 +48,7 @@ class TukeyFilter:
                 "samples": list(self.samples)}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "TukeyFilter":
+    def from_dict(cls, d: dict[str, Any]) -> TukeyFilter:
         obj = cls(d["window"], d["k"], d["min_samples"], d["min_iqr"])
         obj.samples.extend(float(v) for v in d["samples"])
         return obj
@@ -76,7 +76,7 @@ class ScalarKalman:
         return {"q": self.q, "r": self.r, "x": self.x, "p": self.p}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "ScalarKalman":
+    def from_dict(cls, d: dict[str, Any]) -> ScalarKalman:
         obj = cls(d["q"], d["r"])
         obj.x, obj.p = d["x"], float(d["p"])
         return obj
@@ -159,7 +159,7 @@ class LandmarkCorrector:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "LandmarkCorrector":
+    def from_dict(cls, d: dict[str, Any]) -> LandmarkCorrector:
         obj = cls(d["beacons"], d["enter_dbm"], d["leave_dbm"], d["window"], d["q"], d["r"], d["snap_std_m"])
         obj.tukey = {k: TukeyFilter.from_dict(v) for k, v in d["tukey"].items()}
         obj.kalman = {k: ScalarKalman.from_dict(v) for k, v in d["kalman"].items()}

@@ -22,7 +22,6 @@ from server.estimation.tracking.ekf import parse_on_wall, range_h
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.types import Fix, Step
 
-
 _MIN_VAR = 1e-12
 
 
