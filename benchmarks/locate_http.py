@@ -28,8 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.http_load import client, closed_loop  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
+from localizer_tools.upload import upload  # noqa: E402
 from server.estimation.fingerprint import from_bytes  # noqa: E402
-from server.upload import upload  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
 

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from client_sim.server_process import start_server, stop_server  # noqa: E402
-from server.upload import upload  # noqa: E402
+from localizer_tools.upload import upload  # noqa: E402
 
 KEY = "benchmark-admin-key"
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.upload import chunks_of, guess_format, upload
+from localizer_tools.upload import chunks_of, guess_format, upload
 from tests.conftest import ADMIN_KEY
 
 FIXTURES = Path(__file__).parent / "fixtures"

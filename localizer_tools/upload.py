@@ -1,6 +1,6 @@
 """Survey upload tool: sends a CSV or JSON survey file to a running server, in chunks.
 
-    python -m server.upload FILE --site ID [--format csv|json|ujiindoorloc] [--dry-run]
+    python -m localizer_tools.upload FILE --site ID [--format csv|json|ujiindoorloc] [--dry-run]
 
 It first validates every chunk with ``?dry_run=true`` and prints a per-row error report
 (file line, field, message); only a clean file is then stored. Each chunk carries an
@@ -173,7 +173,7 @@ def guess_format(path: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m server.upload", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m localizer_tools.upload", description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path)
     parser.add_argument("--site", type=int, required=True, help="site id")
     parser.add_argument("--url", default=os.environ.get("LOCALIZER_URL", "http://127.0.0.1:8000"))
