@@ -5,16 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from server.estimation.fingerprint import (
-    PropagationModel,
-    cold_start_fix,
-    exp_weights,
-    fit_path_loss,
-    fuse_fixes,
-    multilaterate,
-    weighted_centroid,
-)
+from server.estimation.fingerprint import PropagationModel, cold_start_fix, exp_weights, fuse_fixes
 from server.estimation.fingerprint.synthetic import make_site
+from server.estimation.radio import fit_path_loss, multilaterate, weighted_centroid
 from server.estimation.types import Fix
 
 

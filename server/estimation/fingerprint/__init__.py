@@ -8,6 +8,8 @@
     blob = model.to_bytes(); model = from_bytes(blob)    # sha256-checked artifact
 """
 
+from server.estimation.radio import multilaterate  # canonical home: server.estimation.radio
+
 from .artifact import ArtifactError, checksum, from_bytes, to_bytes
 from .base import FingerprintModel, NotFittedError, UnknownTransmittersError
 from .dataset import FingerprintSet, ReferencePoints, group_split, random_split
@@ -18,7 +20,7 @@ from .knn import KNNModel
 from .metrics import Metrics, evaluate, fit_and_validate, holdout_split
 from .nbc import NBCModel
 from .posterior import Prediction
-from .propagation import PropagationModel, fit_path_loss, multilaterate, weighted_centroid
+from .propagation import PropagationModel
 from .registry import ALGORITHMS, make_model
 from .svm import SVMModel
 from .tkbe import TKBEModel
@@ -27,7 +29,6 @@ __all__ = [
     "ALGORITHMS", "ArtifactError", "FingerprintModel", "FingerprintSet", "KDEModel", "KNNModel", "Metrics",
     "NBCModel", "NotFittedError", "Prediction", "PropagationModel", "ReferencePoints", "RssEncoder",
     "SVMModel", "TKBEModel", "UnknownTransmittersError", "checksum", "cold_start_fix", "evaluate",
-    "exp_weights", "fit_and_validate", "fit_path_loss", "from_bytes", "fuse_fixes", "group_split",
+    "exp_weights", "fit_and_validate", "from_bytes", "fuse_fixes", "group_split",
     "heading_features", "holdout_split", "make_model", "multilaterate", "random_split", "to_bytes",
-    "weighted_centroid",
 ]

@@ -1,8 +1,7 @@
 """Propagation (path-loss) model: for sites with transmitter positions and few or no
 fingerprints.
 
-Log-distance path loss ``RSS = R0 − 10·γ·log10(d)`` (d in metres, ≥ 1 m; R0 = RSS at
-1 m). Per transmitter, R0 and γ are
+Log-distance path loss (``server.estimation.radio``; d ≥ 1 m). Per transmitter, R0 and γ are
 
 - taken from the site's Transmitter records (``tx_power_dbm``, ``path_loss_exponent``)
   when given, else
@@ -13,9 +12,10 @@ Log-distance path loss ``RSS = R0 − 10·γ·log10(d)`` (d in metres, ≥ 1 m; 
 
 Locating one scan: floor = the (building, floor) classifier's answer when the model
 was fitted on fingerprints of several floors (``floor_classifier``, as for every
-model), else a power-weighted vote of the strongest heard transmitters' floors; ranges from the inverted path loss (horizontal, after removing the floor
-height difference); then least-squares multilateration (relative range residuals,
-soft-L1 loss) or the weighted path-loss centroid (weights 1/d). With fingerprints the
+model), else a power-weighted vote of the strongest heard transmitters' floors; ranges
+from the inverted path loss (horizontal, after removing the floor height difference);
+then least-squares multilateration (relative range residuals, soft-L1 loss) or the
+weighted path-loss centroid (weights 1/d). With fingerprints the
 estimate is turned into a posterior over the reference points of that floor like every
 other model; without, the fix is the estimate with its least-squares covariance.
 """
@@ -25,8 +25,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
+from server.estimation.radio import fit_path_loss, multilaterate, range_from_rss, weighted_centroid
 from server.estimation.types import Fix
 
 from .base import FingerprintModel, TrainingData, _concat_predictions
@@ -34,63 +34,6 @@ from .dataset import FingerprintSet, tx_kind
 from .posterior import Prediction
 
 METHODS = ("multilateration", "centroid")
-
-
-# ---- building blocks (usable on their own) ------------------------------------------------
-def fit_path_loss(distance_m, rss_dbm, min_distance_m: float = 1.0,
-                  gamma_bounds=(1.0, 6.0)) -> tuple[float, float]:
-    """Least-squares (R0, γ) of ``rss = R0 − 10·γ·log10(d)``. Needs ≥ 2 distinct
-    distances; γ is clipped to ``gamma_bounds`` (R0 refitted with γ fixed)."""
-    d = np.maximum(np.asarray(distance_m, dtype=float), min_distance_m)
-    r = np.asarray(rss_dbm, dtype=float)
-    ok = np.isfinite(d) & np.isfinite(r)
-    d, r = d[ok], r[ok]
-    L = -10.0 * np.log10(d)
-    if len(r) < 2 or np.ptp(L) < 1e-6:
-        raise ValueError("need readings at two or more distinct distances")
-    A = np.column_stack([np.ones_like(L), L])
-    (r0, g), *_ = np.linalg.lstsq(A, r, rcond=None)
-    if not gamma_bounds[0] <= g <= gamma_bounds[1]:
-        g = float(np.clip(g, *gamma_bounds))
-        r0 = float(np.mean(r - g * L))
-    return float(r0), float(g)
-
-
-def rss_to_distance(rss_dbm, r0, gamma) -> np.ndarray:
-    return 10.0 ** ((np.asarray(r0) - np.asarray(rss_dbm)) / (10.0 * np.asarray(gamma)))
-
-
-def weighted_centroid(anchors_xy: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
-    """Weighted path-loss centroid, weights 1/d."""
-    w = 1.0 / np.maximum(np.asarray(ranges_m, dtype=float), 0.1)
-    return (np.asarray(anchors_xy) * w[:, None]).sum(0) / w.sum()
-
-
-def multilaterate(anchors_xy: np.ndarray, ranges_m: np.ndarray, x0=None,
-                  min_rel_error: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares position from ranges to anchors (relative residuals
-    ``(|p − a| − r)/r``, soft-L1). Returns (xy, 2×2 covariance in m²). Fewer than three
-    anchors: the weighted centroid with a covariance from the ranges."""
-    A = np.asarray(anchors_xy, dtype=float)
-    r = np.maximum(np.asarray(ranges_m, dtype=float), 0.5)
-    start = weighted_centroid(A, r) if x0 is None else np.asarray(x0, dtype=float)
-    if len(A) < 3:
-        s = float(np.min(r))
-        return start, np.eye(2) * s**2
-
-    def resid(p):
-        return (np.hypot(*(p - A).T) - r) / r
-
-    sol = least_squares(resid, start, loss="soft_l1", f_scale=0.3)
-    J = sol.jac
-    s2 = max(float(np.sum(sol.fun**2)) / max(len(A) - 2, 1), min_rel_error**2)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
-    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
-        cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
-    return sol.x, cov
 
 
 # ---- the model --------------------------------------------------------------------------
@@ -211,11 +154,11 @@ class PropagationModel(FingerprintModel):
         ok = ok[np.argsort(-rss_row[ok])][: self.max_anchors]
         power = 10.0 ** (rss_row[ok] / 10.0)
         votes: dict[tuple, float] = {}
-        for j, w in zip(ok[:3], power[:3]):
+        for j, w in zip(ok[:3], power[:3], strict=True):
             key = (int(self.tx_building_[j]), int(self.tx_floor_[j]))
             votes[key] = votes.get(key, 0.0) + w
         building, floor = max(votes, key=votes.get) if group is None else group
-        d = rss_to_distance(rss_row[ok], self.r0_[ok], self.gamma_[ok])
+        d = range_from_rss(rss_row[ok], self.r0_[ok], self.gamma_[ok])
         dz = (self.tx_floor_[ok] - floor) * self.floor_height_m
         r = np.sqrt(np.maximum(d**2 - dz**2, 0.25))
         A = self.tx_pos_[ok]
@@ -240,7 +183,7 @@ class PropagationModel(FingerprintModel):
             groups = [(int(self.group_building_[k]), int(self.group_floor_[k])) for k in g]
         est = [self.estimate(R[i], groups[i]) for i in range(n)]
         parts = []
-        for i, e in enumerate(est):
+        for e in est:
             if e is None:  # nothing usable heard: centre of everything known, huge covariance
                 known = self.tx_pos_[~np.isnan(self.tx_pos_[:, 0])]
                 c = known.mean(0) if len(known) else np.zeros(2)

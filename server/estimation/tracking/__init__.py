@@ -11,6 +11,7 @@ range_std_m, on_wall=None) -> bool, mean, covariance, reset(mean, cov),
 set_walls(walls), search_region(), to_dict(), from_dict().
 """
 
+from server.estimation.radio import range_and_std, range_from_rss  # canonical home: server.estimation.radio
 from server.estimation.tracking.base import TRACKERS, Tracker, make_tracker, tracker_from_dict, tracker_names
 from server.estimation.tracking.crowd import gate, make_crowd_point, merge_crowd_point, merge_points
 from server.estimation.tracking.ekf import EKFTracker
@@ -18,7 +19,6 @@ from server.estimation.tracking.fkf import FuzzyKFTracker
 from server.estimation.tracking.floors import FloorTracker
 from server.estimation.tracking.kf import KFTracker
 from server.estimation.tracking.landmarks import LandmarkCorrector, Snap, apply_snap
-from server.estimation.tracking.path_loss import range_and_std, range_from_rss, range_std_from_rss
 from server.estimation.tracking.pf import ParticleFilterTracker
 from server.estimation.tracking.skpf import SKPFTracker
 from server.estimation.tracking.ukf import UKFTracker
@@ -44,6 +44,5 @@ __all__ = [
     "merge_crowd_point",
     "merge_points",
     "range_from_rss",
-    "range_std_from_rss",
     "range_and_std",
 ]
