@@ -32,9 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .batches import Scan
 from .imu import ImuData
 from .pdr import PdrConfig, PdrStep, heading_at, heading_track
-from .pdr.step_detection import find_step_events
+from .pdr.step_detection import find_step_peaks
 from .pdr.step_length import weinberg
 
 
@@ -151,7 +152,7 @@ def interpolate_waypoints(waypoints: np.ndarray, t) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- scans
-def wifi_scans(walk: Walk, max_age_s: float = 3.0) -> list[dict]:
+def wifi_scans(walk: Walk, max_age_s: float = 3.0) -> list[Scan]:
     """WiFi scan results as API scans ``{t, rss}``, stale entries removed.
 
     An entry is kept when its last-seen time is within ``max_age_s`` before the scan
@@ -165,7 +166,7 @@ def wifi_scans(walk: Walk, max_age_s: float = 3.0) -> list[dict]:
     for r in walk.wifi:
         by_time.setdefault(r.t, []).append(r)
     seen: set[tuple[str, float]] = set()
-    scans = []
+    scans: list[Scan] = []
     for t in sorted(by_time):
         best: dict[str, WifiReading] = {}
         for r in by_time[t]:
@@ -183,10 +184,10 @@ def wifi_scans(walk: Walk, max_age_s: float = 3.0) -> list[dict]:
     return scans
 
 
-def beacon_scans(walk: Walk, window_s: float = 1.0) -> list[dict]:
+def beacon_scans(walk: Walk, window_s: float = 1.0) -> list[Scan]:
     """iBeacon readings grouped into windows of ``window_s`` (strongest reading per
     beacon in a window); the scan's ``t`` is the window's last reading."""
-    scans: list[dict] = []
+    scans: list[Scan] = []
     if not walk.beacons:
         return scans
     readings = sorted(walk.beacons, key=lambda r: r.t)
@@ -206,7 +207,7 @@ def beacon_scans(walk: Walk, window_s: float = 1.0) -> list[dict]:
     return scans
 
 
-def survey_rows(walk: Walk, scans: list[dict], floor: int = 0, device: str | None = None) -> list[dict]:
+def survey_rows(walk: Walk, scans: list[Scan], floor: int = 0, device: str | None = None) -> list[dict]:
     """API survey fingerprints: each scan placed at the waypoint-interpolated position
     of its time; scans outside the waypoints' time span are left out (no truth there)."""
     rows = []
@@ -223,27 +224,27 @@ def survey_rows(walk: Walk, scans: list[dict], floor: int = 0, device: str | Non
 
 # --------------------------------------------------------------------------- PDR
 @dataclass(frozen=True)
-class StepEvents:
-    """The phone's own detection, before any calibration: step times, the Weinberg
-    swing ``a_max − a_min`` per step, and the raw filter heading at each step
-    (degrees clockwise from magnetic north as the phone sees it)."""
+class UncalibratedSteps:
+    """Steps as the phone detects them, before the site calibration sets their length and
+    heading offset: step times, the Weinberg swing ``a_max − a_min`` per step, and the raw
+    filter heading at each step (degrees clockwise from magnetic north as the phone sees it)."""
 
     t: np.ndarray
     swing: np.ndarray
     heading_deg: np.ndarray
 
 
-def detect_steps(walk: Walk, config: PdrConfig | None = None) -> StepEvents:
+def detect_steps(walk: Walk, config: PdrConfig | None = None) -> UncalibratedSteps:
     """Run the project's on-phone PDR (peak detector + gyro/magnetometer Kalman heading)
     on the walk's raw IMU. Headings are magnetic (``north_deg`` of the config)."""
     cfg = config or PdrConfig()
     imu = walk.imu()
-    ev = find_step_events(imu.t, imu.acc, cfg.detector)
+    ev = find_step_peaks(imu.t, imu.acc, cfg.detector)
     headings = heading_track(imu, cfg)
-    return StepEvents(ev.t, np.maximum(ev.a_max - ev.a_min, 0.0), heading_at(imu.t, headings, ev.t))
+    return UncalibratedSteps(ev.t, np.maximum(ev.a_max - ev.a_min, 0.0), heading_at(imu.t, headings, ev.t))
 
 
-def steps_from_events(ev: StepEvents, weinberg_k: float, heading_offset_deg: float,
+def steps_from_events(ev: UncalibratedSteps, weinberg_k: float, heading_offset_deg: float,
                       length_std_m: float = 0.1, heading_std_deg: float = 8.0) -> list[PdrStep]:
     """Steps in the site frame: Weinberg length with ``weinberg_k``, heading + offset."""
     lengths = weinberg(ev.swing, np.zeros_like(ev.swing), weinberg_k)
@@ -266,7 +267,7 @@ def dead_reckon(steps: list[PdrStep], start_xy, t0: float) -> np.ndarray:
     return np.array(out)
 
 
-def segment_displacements(ev: StepEvents, waypoints: np.ndarray, weinberg_k: float = 1.0,
+def segment_displacements(ev: UncalibratedSteps, waypoints: np.ndarray, weinberg_k: float = 1.0,
                           t_until: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per waypoint segment (ending at or before ``t_until``): the PDR displacement of
     the steps inside it (magnetic headings, lengths with ``weinberg_k``) and the true
@@ -320,22 +321,7 @@ def calibration_window(waypoints: np.ndarray, min_distance_m: float = 10.0, min_
     return float(waypoints[-1, 0])
 
 
-# --------------------------------------------------------------------------- batches and errors
-def make_batches(steps: list[PdrStep], scans: list[dict], t0: float, t1: float, interval_s: float = 2.0) -> list[dict]:
-    """API batches every ``interval_s`` of phone time from ``t0`` (exclusive) to ``t1``,
-    seq from 0; steps and scans at or before ``t0`` are left out (the session starts there)."""
-    edges = np.arange(t0 + interval_s, t1 + interval_s, interval_s)
-    batches, lo = [], t0
-    for seq, hi in enumerate(edges):
-        batches.append({
-            "seq": seq,
-            "steps": [s.to_api() for s in steps if lo < s.t <= hi],
-            "scans": [s for s in scans if lo < s["t"] <= hi],
-        })
-        lo = hi
-    return batches
-
-
+# --------------------------------------------------------------------------- errors
 def errors_against(walk: Walk, track) -> list[dict]:
     """Rows ``{t, x, y, error_m}`` for estimates inside the waypoints' time span."""
     rows = []

@@ -31,8 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .batches import Scan, make_batches
 from .http_client import ApiError, LocalizerClient
 from .msft import (
+    UncalibratedSteps,
     Walk,
     beacon_scans,
     calibration_window,
@@ -40,7 +42,6 @@ from .msft import (
     detect_steps,
     errors_against,
     fit_rotation_scale,
-    make_batches,
     read_walk,
     segment_displacements,
     steps_from_events,
@@ -84,11 +85,13 @@ def default_split(n: int, every: int = 4) -> tuple[list[int], list[int]]:
     return [i for i in range(n) if i not in test], test
 
 
-@dataclass
+@dataclass(frozen=True)
 class Prepared:
+    """One walk read once: its truth, its steps before calibration and its scans."""
+
     walk: Walk
-    events: object
-    scans: list[dict]
+    events: UncalibratedSteps
+    scans: list[Scan]
 
 
 def prepare(path: Path, max_age_s: float, ble: bool) -> Prepared:
@@ -133,7 +136,9 @@ def site_calibration(maps: list[Prepared], min_segment_m: float = 3.0) -> dict:
                 "walks": 0}
     off, k = _circular_median(offsets), float(np.median(ks))
     spread = np.degrees(np.abs(np.angle(np.exp(1j * np.radians(np.asarray(offsets) - off)))))
-    h_res, l_res, lengths = [], [], []
+    h_res: list[float] = []
+    l_res: list[float] = []
+    lengths: list[float] = []
     for p in maps:
         pdr, true = segment_displacements(p.events, p.walk.waypoints, k)
         for a, b in zip(pdr, true):
@@ -265,7 +270,7 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
     batches = make_batches(steps, p.scans, w.t_start, w.t_end, interval_s)
     batch_rows = []
     for b in batches:
-        res = await device.post_batch(session["id"], b)
+        res = await device.post_batch(session["id"], b.to_api())
         e = res["estimate"]
         batch_rows.append((e["t"], e["x"], e["y"]))
     track = await device.get_track(session["id"])

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .batches import Batch, Scan, make_batches
 from .imu import ImuParams, synthesize_imu
 from .pdr import PdrConfig, PdrStep, heading_at, run_pdr
 from .radio import RadioModel
@@ -21,11 +22,15 @@ from .world import Waypoint, World
 class PhoneTrace:
     walk: Walk
     steps: list[PdrStep]
-    scans: list[dict]  # API scan items: {t, rss, heading_deg}
+    scans: list[Scan]  # each with the PDR heading
 
     def truth_at(self, t: float) -> tuple[float, float, int]:
         x, y, floor, _ = self.walk.pose_at(t)
         return x, y, floor
+
+    def batches(self, interval_s: float) -> list[Batch]:
+        """Everything the phone measured on its walk, in batches every ``interval_s``."""
+        return make_batches(self.steps, self.scans, self.walk.t_start, self.walk.t_end, interval_s)
 
     def dead_reckoning(self) -> np.ndarray:
         """PDR-only track (rows t, x, y) from the true start: the baseline a filter must beat."""
@@ -57,7 +62,7 @@ def simulate_phone(world: World, route: list[Waypoint] | tuple[Waypoint, ...], s
     imu = synthesize_imu(walk, rng, imu_params, north_deg=world.magnetic_north_deg, field_seed=world.seed)
     steps, headings = run_pdr(imu, PdrConfig(north_deg=world.magnetic_north_deg))
     radio = radio or RadioModel(world)
-    scans = []
+    scans: list[Scan] = []
     for kind, rate in (("wifi", wifi_hz), ("ble", ble_hz)):
         for t in scan_times(walk.t_start, walk.t_end, rate, rng):
             x, y, floor, heading = walk.pose_at(t)

@@ -79,21 +79,6 @@ async def run_survey(base_url: str, admin_key: str, scenario: World | str, *, sc
 # ------------------------------------------------------------------ track
 
 
-def make_batches(trace: PhoneTrace, interval_s: float) -> list[dict]:
-    """Steps and scans grouped into batches every ``interval_s`` of phone time, seq from 0."""
-    t0, t1 = trace.walk.t_start, trace.walk.t_end
-    edges = np.arange(t0 + interval_s, t1 + interval_s, interval_s)
-    batches, lo = [], -math.inf
-    for seq, hi in enumerate(edges):
-        batches.append({
-            "seq": seq,
-            "steps": [s.to_api() for s in trace.steps if lo < s.t <= hi],
-            "scans": [s for s in trace.scans if lo < s["t"] <= hi],
-        })
-        lo = hi
-    return batches
-
-
 def _estimate_row(est: dict, trace: PhoneTrace) -> dict:
     tx, ty, tf = trace.truth_at(est["t"])
     return {"t": est["t"], "x": est["x"], "y": est["y"], "floor": est["floor"], "source": est.get("source"),
@@ -112,12 +97,12 @@ async def track_phone(api: LocalizerClient, site_id, trace: PhoneTrace, filter: 
     session = await api.open_session(site_id, filter, init)
     rows, failures = [], 0
     started = time.monotonic()
-    for batch in make_batches(trace, interval_s):
+    for batch in trace.batches(interval_s):
         if speed > 0:  # pace batches like a phone in real time (scaled)
-            due = (batch["seq"] + 1) * interval_s / speed
+            due = (batch.seq + 1) * interval_s / speed
             await asyncio.sleep(max(0.0, due - (time.monotonic() - started)))
         try:
-            res = await api.post_batch(session["id"], batch, retries)
+            res = await api.post_batch(session["id"], batch.to_api(), retries)
             rows.append(_estimate_row(res["estimate"], trace))
         except Exception:  # noqa: BLE001 - one phone's failure is recorded, not fatal
             failures += 1
@@ -163,7 +148,7 @@ async def run_track(base_url: str, device_key: str, scenario: World | str, site_
     """K phones walk the scenario's routes concurrently, each in its own session."""
     world = _world(scenario)
     plans = plan_phones(world, phones, list(filters), seed, wifi_hz, ble_hz)
-    n_batches = sum(len(make_batches(p[3], interval_s)) for p in plans)
+    n_batches = sum(len(p[3].batches(interval_s)) for p in plans)
     bar = tqdm(total=n_batches, desc="batches", disable=not progress)
     async with LocalizerClient(base_url, device_key, transport=transport) as api:
         async def one(i, flt, r_idx, trace):

@@ -148,7 +148,7 @@ def bearing(d: np.ndarray) -> float:
     return float(math.degrees(math.atan2(d[0], d[1])) % 360.0)
 
 
-def route_variant(routes, rng: np.random.Generator) -> list[Waypoint]:
+def route_variant(routes: tuple[tuple[Waypoint, ...], ...], rng: np.random.Generator) -> tuple[Waypoint, ...]:
     """A scenario route picked at random, walked forwards or backwards (crowd walkers)."""
-    route = list(routes[int(rng.integers(len(routes)))])
+    route = routes[int(rng.integers(len(routes)))]
     return route[::-1] if rng.random() < 0.5 else route

@@ -119,7 +119,7 @@ def world_from_dict(d: dict) -> World:
         name=d["name"],
         floors=tuple(
             Floor(f["level"], f.get("name", str(f["level"])), f["width_m"], f["height_m"],
-                  tuple(tuple(map(float, w)) for w in f.get("walls", [])))
+                  tuple((float(x0), float(y0), float(x1), float(y1)) for x0, y0, x1, y1 in f.get("walls", [])))
             for f in d["floors"]
         ),
         transmitters=tuple(Transmitter(**t) for t in d["transmitters"]),

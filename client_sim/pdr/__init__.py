@@ -8,7 +8,7 @@ import numpy as np
 
 from ..imu import ImuData
 from .heading import GyroMagKalman, QuaternionEKF
-from .step_detection import PeakDetectorParams, find_step_events
+from .step_detection import PeakDetectorParams, find_step_peaks
 from .step_length import DEFAULT_WEINBERG_K, weinberg
 
 
@@ -51,7 +51,7 @@ def run_pdr(imu: ImuData, config: PdrConfig | None = None, initial_heading_deg: 
     peak, which is mid-stride.
     """
     cfg = config or PdrConfig()
-    events = find_step_events(imu.t, imu.acc, cfg.detector)
+    events = find_step_peaks(imu.t, imu.acc, cfg.detector)
     headings = heading_track(imu, cfg, initial_heading_deg)
     lengths = weinberg(events.a_max, events.a_min, cfg.weinberg_k)
     step_h = heading_at(imu.t, headings, events.t)

@@ -70,7 +70,7 @@ def acceleration_signal(t: np.ndarray, acc: np.ndarray, p: PeakDetectorParams) -
 
 
 @dataclass(frozen=True)
-class StepEvents:
+class StepPeaks:
     """Detected steps: time of each peak and the acceleration extremes around it (m/s²)."""
 
     t: np.ndarray
@@ -81,7 +81,7 @@ class StepEvents:
         return len(self.t)
 
 
-def find_step_events(t: np.ndarray, acc: np.ndarray, params: PeakDetectorParams | None = None) -> StepEvents:
+def find_step_peaks(t: np.ndarray, acc: np.ndarray, params: PeakDetectorParams | None = None) -> StepPeaks:
     """Steps as peaks of the smoothed, detrended acceleration norm.
 
     ``a_min`` of a step is the lowest value between the previous peak (or 0.6 s
@@ -97,12 +97,12 @@ def find_step_events(t: np.ndarray, acc: np.ndarray, params: PeakDetectorParams 
     )
     starts = np.concatenate([[max(0, peaks[0] - int(0.6 * p.rate_hz))], peaks[:-1]]) if len(peaks) else peaks
     a_min = np.array([smooth[s:e + 1].min() for s, e in zip(starts, peaks)])
-    return StepEvents(grid[peaks], smooth[peaks], a_min)
+    return StepPeaks(grid[peaks], smooth[peaks], a_min)
 
 
 def detect_steps_peaks(t: np.ndarray, acc: np.ndarray, params: PeakDetectorParams | None = None) -> np.ndarray:
     """Times (s, same clock as ``t``) of steps found as peaks of the smoothed norm."""
-    return find_step_events(t, acc, params).t
+    return find_step_peaks(t, acc, params).t
 
 
 def detect_steps_two_threshold(

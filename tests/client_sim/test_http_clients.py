@@ -12,7 +12,7 @@ import httpx
 
 from client_sim.phone import simulate_phone
 from client_sim.report import write_report
-from client_sim.runs import make_batches, run_survey, run_track, survey_fingerprints
+from client_sim.runs import run_survey, run_track, survey_fingerprints
 from client_sim.world import open_room
 
 
@@ -111,7 +111,7 @@ def test_survey_is_deterministic():
 
 def test_batches_cover_every_step_and_scan_once_with_increasing_seq():
     trace = simulate_phone(open_room(), open_room().routes[0], seed=1)
-    batches = make_batches(trace, 2.0)
+    batches = [b.to_api() for b in trace.batches(2.0)]
     assert [b["seq"] for b in batches] == list(range(len(batches)))
     assert sum(len(b["steps"]) for b in batches) == len(trace.steps)
     assert sum(len(b["scans"]) for b in batches) == len(trace.scans)

@@ -14,16 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from client_sim.batches import make_batches
 from client_sim.imu import ImuData
 from client_sim.msft import (
-    StepEvents,
+    UncalibratedSteps,
     beacon_scans,
     calibration_window,
     dead_reckon,
     errors_against,
     fit_rotation_scale,
     interpolate_waypoints,
-    make_batches,
     read_walk,
     segment_displacements,
     steps_from_events,
@@ -100,7 +100,7 @@ def test_survey_rows_place_scans_on_the_waypoint_path(walk):
     assert out == []  # outside the waypoint span: no truth, no fingerprint
 
 
-def _events_along(waypoints: np.ndarray, offset_deg: float, k: float, per_s: float = 2.0) -> StepEvents:
+def _events_along(waypoints: np.ndarray, offset_deg: float, k: float, per_s: float = 2.0) -> UncalibratedSteps:
     """Steps along the waypoint path whose magnetic heading is the truth minus
     ``offset_deg`` and whose Weinberg swing gives the true length with ``k``."""
     ts, swings, heads = [], [], []
@@ -112,7 +112,7 @@ def _events_along(waypoints: np.ndarray, offset_deg: float, k: float, per_s: flo
             ts.append(t0 + (i + 1) * (t1 - t0) / n)
             swings.append((length / k) ** 4)
             heads.append((h - offset_deg) % 360)
-    return StepEvents(np.array(ts), np.array(swings), np.array(heads))
+    return UncalibratedSteps(np.array(ts), np.array(swings), np.array(heads))
 
 
 WAYPOINTS = np.array([[0.0, 0, 0], [10.0, 0, 12], [16.0, 7, 12], [26.0, 7, 0], [30.0, 12, 0]])
@@ -140,7 +140,7 @@ def test_heading_offset_and_step_scale_are_recovered(offset, k):
 def test_heading_offset_with_noise_is_close():
     rng = np.random.default_rng(0)
     ev = _events_along(WAYPOINTS, 12.0, 0.42)
-    noisy = StepEvents(ev.t, ev.swing * rng.uniform(0.8, 1.2, len(ev.t)),
+    noisy = UncalibratedSteps(ev.t, ev.swing * rng.uniform(0.8, 1.2, len(ev.t)),
                        ev.heading_deg + rng.normal(0, 8, len(ev.t)))
     off, k = fit_rotation_scale(*segment_displacements(noisy, WAYPOINTS, 1.0))
     assert abs((off - 12 + 180) % 360 - 180) < 3
@@ -165,10 +165,10 @@ def test_calibration_window_leaves_the_last_segment_out():
 
 
 def test_batches_and_errors(walk):
-    ev = StepEvents(np.array([T0 - 0.5, T0 + 0.5, T0 + 2.5, T0 + 4.5]), np.full(4, 1.0), np.zeros(4))
+    ev = UncalibratedSteps(np.array([T0 - 0.5, T0 + 0.5, T0 + 2.5, T0 + 4.5]), np.full(4, 1.0), np.zeros(4))
     steps = steps_from_events(ev, 0.5, 0.0)
     scans = wifi_scans(walk)
-    batches = make_batches(steps, scans, walk.t_start, walk.t_end, 2.0)
+    batches = [b.to_api() for b in make_batches(steps, scans, walk.t_start, walk.t_end, 2.0)]
     assert [b["seq"] for b in batches] == [0, 1, 2]
     assert [len(b["steps"]) for b in batches] == [1, 1, 1]  # the step before the start is left out
     assert [len(b["scans"]) for b in batches] == [1, 1, 0]

@@ -5,7 +5,7 @@ import pytest
 
 from client_sim.imu import ImuParams, synthesize_imu
 from client_sim.pdr import PdrConfig, run_pdr
-from client_sim.pdr.step_detection import detect_steps_two_threshold, find_step_events
+from client_sim.pdr.step_detection import detect_steps_two_threshold, find_step_peaks
 from client_sim.pdr.step_length import calibrate_quadratic, calibrate_weinberg, quadratic, weinberg
 from client_sim.walker import Gait, walk_route, wrap_deg
 from client_sim.world import corridor_loop
@@ -23,13 +23,13 @@ def test_step_count_is_exact_on_synthetic_walks():
     w = corridor_loop()
     for seed, route in enumerate(w.routes[:2]):
         walk, imu = _walk(route, seed, Gait(step_freq_hz=1.6 + 0.3 * seed))
-        assert len(find_step_events(imu.t, imu.acc)) == walk.n_steps
+        assert len(find_step_peaks(imu.t, imu.acc)) == walk.n_steps
 
 
 def test_weinberg_length_after_calibration_within_5_percent():
     straight = [(0, 0, 0), (0, 20, 0)]
     _, cal_imu = _walk(straight, 1)
-    ev = find_step_events(cal_imu.t, cal_imu.acc)
+    ev = find_step_peaks(cal_imu.t, cal_imu.acc)
     k = calibrate_weinberg(ev.a_max, ev.a_min, 20.0)  # "walk 20 m" calibration
     assert k == pytest.approx(0.40, rel=0.05)
     walk, imu = _walk(corridor_loop().routes[0], 2)
