@@ -6,11 +6,12 @@ estimates) live in ``server.estimation.types``; these are the service's own reco
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
-from server.estimation.types import Estimate, ScanNote
+from server.estimation.types import Estimate, Fix, ScanNote
 
 # --- tracking sessions ---------------------------------------------------------------------
 
@@ -77,3 +78,212 @@ class BatchAnswer:
             skipped_scans=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("skipped_scans", [])),
             rejected_fixes=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("rejected_fixes", [])),
         )
+
+
+# --- API keys ---------------------------------------------------------------------------------
+
+Scope = Literal["admin", "device"]
+
+
+@dataclass(frozen=True)
+class ApiKeyInfo:
+    """A key created from the CLI; only its SHA-256 is known, never the key."""
+
+    id: int
+    name: str
+    scope: Scope
+    key_hash: str
+    created_at: datetime
+    revoked_at: datetime | None = None
+
+
+# --- sites ------------------------------------------------------------------------------------
+
+#: a wall segment (x1, y1, x2, y2), metres
+Wall = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Floor:
+    level: int
+    name: str | None = None
+    width_m: float | None = None
+    height_m: float | None = None
+    walls: tuple[Wall, ...] = ()
+
+
+@dataclass(frozen=True)
+class Transmitter:
+    """A WiFi AP or BLE beacon of a site; position and radio parameters are optional."""
+
+    id: str
+    kind: str
+    floor: int | None = None
+    x: float | None = None
+    y: float | None = None
+    tx_power_dbm: float | None = None
+    path_loss_exponent: float | None = None
+
+
+@dataclass(frozen=True)
+class NewSite:
+    name: str
+    floors: tuple[Floor, ...] = ()
+    transmitters: tuple[Transmitter, ...] = ()
+
+
+@dataclass(frozen=True)
+class Site:
+    id: int
+    name: str
+    settings: Mapping[str, Any]
+    floors: tuple[Floor, ...]
+    created_at: datetime
+    #: renewed whenever something a fix depends on changes (see ``server.tables.Site``)
+    revision: str
+
+
+@dataclass(frozen=True)
+class SiteCounts:
+    transmitters: int = 0
+    reference_points: int = 0
+    survey_fingerprints: int = 0
+    crowd_fingerprints: int = 0
+
+
+@dataclass(frozen=True)
+class SiteSummary:
+    """A site with how much it holds, as the site routes show it."""
+
+    site: Site
+    counts: SiteCounts
+
+
+@dataclass(frozen=True)
+class SiteContextRecord:
+    """What a fix on the site depends on (but the serving model), valid while ``revision`` holds."""
+
+    revision: str
+    settings: Mapping[str, Any]
+    walls: Mapping[int, tuple[Wall, ...]]
+    #: the transmitters with a known position
+    transmitters: tuple[Transmitter, ...]
+
+
+# --- surveys ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FingerprintRecord:
+    """One validated survey scan at a known position; ``label`` names its reference point."""
+
+    x: float
+    y: float
+    floor: int
+    rss: Mapping[str, float]
+    heading_deg: float | None = None
+    t: float | None = None
+    device: str | None = None
+    label: str | None = None
+
+
+@dataclass(frozen=True)
+class SurveyOutcome:
+    accepted: int
+    reference_points: int
+    new_reference_points: int
+    skipped: int = 0
+    dry_run: bool = False
+    #: the answer stored for an earlier upload with the same idempotency key
+    replayed: bool = False
+
+
+@dataclass(frozen=True)
+class ReferencePointSummary:
+    label: str | None
+    floor: int
+    x: float
+    y: float
+    fingerprints: int
+
+
+# --- models -----------------------------------------------------------------------------------
+
+ModelStatus = Literal["queued", "training", "ready", "failed"]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What to train; empty ``kinds`` means every kind of transmitter."""
+
+    algorithm: str
+    params: Mapping[str, Any]
+    use_heading: bool = False
+    kinds: tuple[str, ...] = ()
+    include_crowd: bool = True
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    id: int
+    site_id: int
+    algorithm: str
+    params: Mapping[str, Any]
+    use_heading: bool
+    kinds: tuple[str, ...]
+    include_crowd: bool
+    status: ModelStatus
+    error: str | None
+    active: bool
+    trained_on: int
+    metrics: Mapping[str, Any] | None
+    created_at: datetime
+    updated_at: datetime
+
+    @property
+    def spec(self) -> ModelSpec:
+        return ModelSpec(self.algorithm, self.params, self.use_heading, self.kinds, self.include_crowd)
+
+
+@dataclass(frozen=True)
+class ServingModel:
+    """A ready model with its artifact's SHA-256 (the model cache's key)."""
+
+    model_id: int
+    algorithm: str
+    sha256: str
+
+
+@dataclass(frozen=True)
+class ServingCandidate:
+    """The model asked to serve (chosen, or the site's active one), ready or not."""
+
+    model_id: int
+    algorithm: str
+    status: ModelStatus
+    sha256: str | None
+
+    def ready(self) -> ServingModel | None:
+        """The model as it serves, when it can: trained and with an artifact."""
+        if self.status != "ready" or self.sha256 is None:
+            return None
+        return ServingModel(self.model_id, self.algorithm, self.sha256)
+
+
+@dataclass(frozen=True)
+class Artifact:
+    """A trained model, serialised, with the SHA-256 it was stored with."""
+
+    model_id: int
+    sha256: str
+    blob: bytes
+
+
+# --- positioning ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Located:
+    fix: Fix
+    model_id: int
+    algorithm: str

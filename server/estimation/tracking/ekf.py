@@ -2,12 +2,12 @@
 
 Prediction: x⁻ = x + f(d, h), P⁻ = P + J·diag(σd², σh²)·Jᵀ + q·I, with J the motion
 Jacobian ∂f/∂(d, h) (see ``motion``).
-Updates:
+Updates (measurement models in ``measurements``):
 - ``update(fix)``: z = fix mean, H = I, R = fix.covariance (the fingerprint model's
   adaptive covariance).
-- ``update_range(beacon, r, σr, on_wall)``: h(x) = ‖x − beacon‖, H = (x − b)ᵀ/‖x − b‖,
-  used only when the measured range is within ``max_range_m`` (3 m) of the beacon;
-  when the beacon sits on a wall the posterior mean is kept on the wall's side.
+- ``update_range(beacon, r, σr, on_wall)``: h(x) = ‖x − beacon‖, used only when the
+  measured range is within ``max_range_m`` (3 m) of the beacon; when the beacon sits
+  on a wall the posterior mean is kept on the wall's side.
 """
 
 from __future__ import annotations
@@ -16,49 +16,10 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
-from server.estimation.tracking.geometry import enforce_side, side_of
+from server.estimation.tracking.geometry import enforce_side
+from server.estimation.tracking.measurements import MIN_RANGE_M, fix_H, fix_h, parse_on_wall, range_H, range_h, range_usable
 from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.types import Fix, Step, step_displacement
-
-_MIN_DIST = 1e-3
-
-
-def _h_identity(x):
-    return x
-
-
-def _H_identity(x):
-    return np.eye(2)
-
-
-def range_h(x, beacon):
-    return np.array([np.hypot(x[0] - beacon[0], x[1] - beacon[1])])
-
-
-def range_H(x, beacon):
-    dx, dy = x[0] - beacon[0], x[1] - beacon[1]
-    r = max(np.hypot(dx, dy), _MIN_DIST)
-    return np.array([[dx / r, dy / r]])
-
-
-def parse_on_wall(on_wall, prior_mean) -> tuple[np.ndarray, float] | None:
-    """``on_wall`` is None, a segment [x1, y1, x2, y2], or {"wall": [...], "side": ±1}.
-
-    Without an explicit side, the allowed side is the one the prior mean is on
-    (a beacon heard within 3 m is on the walker's side of its wall).
-    """
-    if on_wall is None:
-        return None
-    if isinstance(on_wall, dict):
-        wall = np.asarray(on_wall["wall"], float)
-        side = on_wall.get("side")
-    else:
-        wall, side = np.asarray(on_wall, float), None
-    if wall.shape != (4,):
-        raise ValueError("on_wall must be [x1, y1, x2, y2] or {'wall': [...], 'side': ±1}")
-    if side is None:
-        side = side_of(prior_mean, wall)
-    return wall, float(np.sign(side))
 
 
 @register
@@ -91,18 +52,18 @@ class EKFTracker(Tracker):
 
     def update(self, fix: Fix) -> None:
         R = fix_cov(fix.covariance)
-        self.ekf.update(np.asarray(fix.mean, float), _H_identity, _h_identity, R=R)
+        self.ekf.update(np.asarray(fix.mean, float), fix_H, fix_h, R=R)
         self._symmetrise()
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not np.isfinite(range_m) or range_m > self.params["max_range_m"] or range_std_m <= 0:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
             return False
         beacon = np.asarray(beacon_xy, float).reshape(2)
         prior = self.mean
         constraint = parse_on_wall(on_wall, prior)
-        if np.hypot(*(prior - beacon)) < _MIN_DIST:
+        if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
             # Jacobian undefined exactly on the beacon: nudge along the first axis.
-            self.ekf.x = prior + np.array([_MIN_DIST, 0.0])
+            self.ekf.x = prior + np.array([MIN_RANGE_M, 0.0])
         self.ekf.update(
             np.array([float(range_m)]),
             range_H,
@@ -113,8 +74,7 @@ class EKFTracker(Tracker):
         )
         self._symmetrise()
         if constraint is not None:
-            wall, side = constraint
-            self.ekf.x, _ = enforce_side(self.ekf.x, wall, side, self.params["wall_margin_m"])
+            self.ekf.x, _ = enforce_side(self.ekf.x, constraint.wall, constraint.side, self.params["wall_margin_m"])
         return True
 
     def _symmetrise(self) -> None:

@@ -48,26 +48,32 @@ def side_of(point, wall) -> float:
     return float(np.sign(cross))
 
 
+def on_wrong_side(points, wall, side: float) -> np.ndarray:
+    """For points (n, 2): whether each is off ``side`` (+1 left / −1 right) of a wall
+    segment within its extent (its perpendicular foot falls on the segment). Beyond
+    the segment's ends nothing is behind the wall."""
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    w = np.asarray(wall, dtype=float)
+    a, d = w[:2], w[2:] - w[:2]
+    rel = p - a
+    t = rel @ d / max(float(d @ d), _EPS)
+    cross = d[0] * rel[:, 1] - d[1] * rel[:, 0]
+    return (t >= 0) & (t <= 1) & (np.sign(cross) != side)
+
+
 def enforce_side(point, wall, side: float, margin_m: float = 0.05) -> tuple[np.ndarray, bool]:
     """Keep ``point`` on ``side`` (+1 left / −1 right) of a wall segment.
 
-    If the point lies on the wrong side *within the extent of the segment* (its
-    perpendicular foot falls on the segment), it is moved to the foot plus
-    ``margin_m`` towards the allowed side. Beyond the segment's ends nothing is
-    behind the wall, so the point is left alone. Returns (point, moved).
+    If the point lies on the wrong side within the extent of the segment
+    (``on_wrong_side``), it is moved to its perpendicular foot plus ``margin_m``
+    towards the allowed side; otherwise it is left alone. Returns (point, moved).
     """
     p = np.asarray(point, dtype=float).copy()
-    x1, y1, x2, y2 = (float(v) for v in wall)
-    a = np.array([x1, y1])
-    d = np.array([x2 - x1, y2 - y1])
+    a = np.asarray(wall[:2], dtype=float)
+    d = np.asarray(wall[2:], dtype=float) - a
     length2 = float(d @ d)
-    if length2 < _EPS or side == 0:
+    if length2 < _EPS or side == 0 or not on_wrong_side(p, wall, side)[0]:
         return p, False
-    t = float((p - a) @ d) / length2
-    if t < 0 or t > 1:
-        return p, False
-    if side_of(p, wall) == side:
-        return p, False
-    foot = a + t * d
+    foot = a + float((p - a) @ d) / length2 * d
     normal = np.array([-d[1], d[0]]) / np.sqrt(length2)  # points to the left
     return foot + side * margin_m * normal, True

@@ -17,8 +17,8 @@ import math
 import numpy as np
 
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
-from server.estimation.tracking.ekf import parse_on_wall
-from server.estimation.tracking.geometry import crosses_walls
+from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
+from server.estimation.tracking.measurements import parse_on_wall, range_usable
 from server.estimation.tracking.resampling import effective_sample_size, systematic_resample
 from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
 from server.estimation.types import Fix, Step
@@ -74,24 +74,15 @@ class ParticleFilterTracker(Tracker):
         self._reweight(-0.5 * maha)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not np.isfinite(range_m) or range_m > self.params["max_range_m"] or range_std_m <= 0:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
             return False
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, self.mean)
         dist = np.hypot(self.particles[:, 0] - beacon[0], self.particles[:, 1] - beacon[1])
         loglik = -0.5 * ((dist - range_m) / range_std_m) ** 2
         if constraint is not None:
-            wall, side = constraint
-            loglik = np.where(self._wrong_side(wall, side), -np.inf, loglik)
+            loglik = np.where(on_wrong_side(self.particles, constraint.wall, constraint.side), -np.inf, loglik)
         return self._reweight(loglik)
-
-    def _wrong_side(self, wall: np.ndarray, side: float) -> np.ndarray:
-        a, b = wall[:2], wall[2:]
-        d = b - a
-        rel = self.particles - a
-        t = rel @ d / max(float(d @ d), 1e-12)
-        cross = d[0] * rel[:, 1] - d[1] * rel[:, 0]
-        return (t >= 0) & (t <= 1) & (np.sign(cross) != side)
 
     def _reweight(self, loglik: np.ndarray) -> bool:
         with np.errstate(divide="ignore"):

@@ -18,15 +18,11 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
 
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
-from server.estimation.tracking.ekf import parse_on_wall, range_h
 from server.estimation.tracking.geometry import enforce_side
+from server.estimation.tracking.measurements import fix_h, parse_on_wall, range_h, range_usable
 from server.estimation.types import Fix, Step
 
 _MIN_VAR = 1e-12
-
-
-def _hx_identity(x):
-    return x
 
 
 def _fx_none(x, dt):
@@ -62,7 +58,7 @@ class UKFTracker(Tracker):
         }
         self._aug_points = MerweScaledSigmaPoints(4, alpha=alpha, beta=beta, kappa=kappa)
         points = MerweScaledSigmaPoints(2, alpha=alpha, beta=beta, kappa=kappa)
-        self.ukf = UnscentedKalmanFilter(dim_x=2, dim_z=2, dt=1.0, hx=_hx_identity, fx=_fx_none, points=points)
+        self.ukf = UnscentedKalmanFilter(dim_x=2, dim_z=2, dt=1.0, hx=fix_h, fx=_fx_none, points=points)
         self.ukf.x = as_mean(initial_mean)
         self.ukf.P = as_cov(initial_cov)
 
@@ -83,11 +79,11 @@ class UKFTracker(Tracker):
 
     def update(self, fix: Fix) -> None:
         self._prepare_update()
-        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=_hx_identity)
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=fix_h)
         self._set(self.ukf.x, self.ukf.P)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not np.isfinite(range_m) or range_m > self.params["max_range_m"] or range_std_m <= 0:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
             return False
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, self.mean)
@@ -97,7 +93,7 @@ class UKFTracker(Tracker):
         )
         x = self.ukf.x
         if constraint is not None:
-            x, _ = enforce_side(x, constraint[0], constraint[1], self.params["wall_margin_m"])
+            x, _ = enforce_side(x, constraint.wall, constraint.side, self.params["wall_margin_m"])
         self._set(x, self.ukf.P)
         return True
 

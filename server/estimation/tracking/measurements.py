@@ -1,0 +1,74 @@
+"""Measurement models shared by the nonlinear trackers (EKF, UKF, PF).
+
+- fix: z = x, H = I (R = the fix's covariance);
+- beacon range: h(x) = ‖x − beacon‖, H = (x − b)ᵀ/‖x − b‖, used only within
+  ``max_range_m`` of the beacon (``range_usable``);
+- wall side: a beacon mounted on a wall is heard on one side of it (``WallSide``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from server.estimation.tracking.geometry import side_of
+
+#: below this distance from the beacon the range Jacobian is undefined
+MIN_RANGE_M = 1e-3
+
+
+def fix_h(x: np.ndarray) -> np.ndarray:
+    """A fix measures the position itself."""
+    return x
+
+
+def fix_H(x: np.ndarray) -> np.ndarray:
+    return np.eye(2)
+
+
+def range_h(x: np.ndarray, beacon: np.ndarray) -> np.ndarray:
+    """Distance from ``x`` to the beacon, as a 1-vector."""
+    return np.array([np.hypot(x[0] - beacon[0], x[1] - beacon[1])])
+
+
+def range_H(x: np.ndarray, beacon: np.ndarray) -> np.ndarray:
+    """Jacobian of ``range_h`` (1×2); the distance is floored at ``MIN_RANGE_M``."""
+    dx, dy = x[0] - beacon[0], x[1] - beacon[1]
+    r = max(np.hypot(dx, dy), MIN_RANGE_M)
+    return np.array([[dx / r, dy / r]])
+
+
+def range_usable(range_m: float, range_std_m: float, max_range_m: float) -> bool:
+    """Whether a beacon range is worth an update: finite, close enough, positive spread
+    (far ranges are too noisy for the log-distance model)."""
+    return bool(np.isfinite(range_m)) and range_m <= max_range_m and range_std_m > 0
+
+
+@dataclass(frozen=True)
+class WallSide:
+    """The estimate must stay on ``side`` (+1 left / −1 right) of ``wall`` [x1, y1, x2, y2]."""
+
+    wall: np.ndarray
+    side: float
+
+
+def parse_on_wall(on_wall: Any, prior_mean) -> WallSide | None:
+    """``on_wall`` is None, a segment [x1, y1, x2, y2], or {"wall": [...], "side": ±1}.
+
+    Without an explicit side, the allowed side is the one the prior mean is on
+    (a beacon heard within 3 m is on the walker's side of its wall).
+    """
+    if on_wall is None:
+        return None
+    if isinstance(on_wall, dict):
+        wall = np.asarray(on_wall["wall"], float)
+        side = on_wall.get("side")
+    else:
+        wall, side = np.asarray(on_wall, float), None
+    if wall.shape != (4,):
+        raise ValueError("on_wall must be [x1, y1, x2, y2] or {'wall': [...], 'side': ±1}")
+    if side is None:
+        side = side_of(prior_mean, wall)
+    return WallSide(wall, float(np.sign(side)))
