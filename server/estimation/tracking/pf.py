@@ -28,6 +28,8 @@ from server.estimation.types import Fix, Step
 class ParticleFilterTracker(Tracker):
     name = "pf"
     supports_range = True
+    particles: np.ndarray  # (n, 2), set by reset() and _load_state()
+    weights: np.ndarray  # (n,), sum 1
 
     def __init__(
         self,
