@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from server import evaluate as evaluate_cli
-from server.estimation.fingerprint import ArtifactError, FingerprintModel, checksum, from_bytes, make_model
+from server.estimation.fingerprint import ArtifactError, checksum, from_bytes, make_model, to_bytes
 from server.estimation.fingerprint.artifact import MAGIC
 from server.estimation.fingerprint.loaders import (
     read_survey_csv,
@@ -26,8 +26,8 @@ def test_artifact_round_trip(name, site_and_survey):
     site, fs = site_and_survey
     params = {"time_budget_s": 2.0, "C": 10.0} if name == "svm" else {}
     model = make_model(name, params, use_heading=True).fit(fs)
-    blob = model.to_bytes()
-    again = FingerprintModel.from_bytes(blob)
+    blob = to_bytes(model)
+    again = from_bytes(blob)
     assert type(again) is type(model) and again.get_params() == model.get_params()
     scans = site.survey(scans_per_rp=1, seed=3).scans()[:10]
     a, b = model.locate_many(scans, 90.0), again.locate_many(scans, 90.0)
@@ -37,7 +37,7 @@ def test_artifact_round_trip(name, site_and_survey):
 
 def test_artifact_refuses_corruption(site_and_survey):
     _, fs = site_and_survey
-    blob = make_model("knn").fit(fs).to_bytes()
+    blob = to_bytes(make_model("knn").fit(fs))
     flipped = bytearray(blob)
     flipped[-20] ^= 0x01
     with pytest.raises(ArtifactError):

@@ -1,11 +1,11 @@
 """Fingerprint models: pure Python (numpy/scipy/scikit-learn), no web or DB imports.
 
-    from server.estimation.fingerprint import FingerprintSet, make_model, from_bytes
+    from server.estimation.fingerprint import FingerprintSet, make_model, to_bytes, from_bytes
 
     fs = FingerprintSet.from_rows(rows)                   # rows as stored by the server
     model = make_model("knn", {"k": 3}, use_heading=False, kinds=["wifi"]).fit(fs)
     fix = model.locate({"wifi:wap001": -70.0}, heading_deg=None)   # -> types.Fix
-    blob = model.to_bytes(); model = from_bytes(blob)    # sha256-checked artifact
+    blob = to_bytes(model); model = from_bytes(blob)     # sha256-checked artifact
 """
 
 from server.estimation.radio import multilaterate  # canonical home: server.estimation.radio

@@ -12,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import pickle
 
+from .base import FingerprintModel
+
 MAGIC = b"LOCFP1\n"
 _DIGEST = 32
 
@@ -20,7 +22,7 @@ class ArtifactError(ValueError):
     """The blob is not a valid, intact fingerprint-model artifact."""
 
 
-def to_bytes(model) -> bytes:
+def to_bytes(model: FingerprintModel) -> bytes:
     payload = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
     return MAGIC + hashlib.sha256(payload).digest() + payload
 
@@ -32,9 +34,7 @@ def checksum(blob: bytes) -> str:
     return blob[len(MAGIC): len(MAGIC) + _DIGEST].hex()
 
 
-def from_bytes(blob: bytes):
-    from .base import FingerprintModel
-
+def from_bytes(blob: bytes) -> FingerprintModel:
     blob = bytes(blob)
     if not blob.startswith(MAGIC) or len(blob) < len(MAGIC) + _DIGEST:
         raise ArtifactError("not a fingerprint-model artifact (bad header)")

@@ -8,8 +8,8 @@
 Subclasses implement ``_fit(X, H, data)`` and ``_log_scores(Q, Hq, mask)`` returning
 (nq, n_rp) log-scores over reference points; this class does the rest: transmitter
 filtering by kind, missing-value representation, heading features, the floor-first
-reduction to a `Fix`, spatial restriction around a previous estimate, and
-serialisation (`to_bytes` / `from_bytes`, see artifact.py).
+reduction to a `Fix`, and spatial restriction around a previous estimate.
+Serialisation is artifact.py's (`to_bytes(model)` / `from_bytes(blob)`).
 """
 
 from __future__ import annotations
@@ -334,18 +334,6 @@ class FingerprintModel:
     def locate_many(self, rss, heading_deg=None, *, near=None, radius_m: float | None = None) -> list[Fix]:
         """Many scans (list of dicts, matrix or FingerprintSet) → list of Fix."""
         return self.fixes(self.predict(rss, heading_deg, near=near, radius_m=radius_m))
-
-    # ---- artifacts -----------------------------------------------------------------
-    def to_bytes(self) -> bytes:
-        from .artifact import to_bytes
-
-        return to_bytes(self)
-
-    @staticmethod
-    def from_bytes(blob: bytes) -> FingerprintModel:
-        from .artifact import from_bytes
-
-        return from_bytes(blob)
 
 
 def _concat_predictions(parts: list[Prediction]) -> Prediction:
