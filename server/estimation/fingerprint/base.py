@@ -23,7 +23,7 @@ import numpy as np
 
 from server.estimation.types import Candidate, Fix
 
-from .dataset import FingerprintSet, ReferencePoints, tx_kind
+from .dataset import FingerprintSet, ReferencePoints
 from .features import RssEncoder, heading_features
 from .posterior import Prediction, reduce_posterior
 
@@ -135,11 +135,11 @@ class FingerprintModel:
         self.encoder_ = RssEncoder(self.missing, self.floor_dbm)
         rp = fs.reference_points()
         self.rp_ = rp
-        gkeys = sorted({(int(b), int(f)) for b, f in zip(rp.building, rp.floor)})
+        gkeys = sorted({(int(b), int(f)) for b, f in zip(rp.building, rp.floor, strict=True)})
         gindex = {k: i for i, k in enumerate(gkeys)}
         self.group_building_ = np.array([k[0] for k in gkeys], dtype=int)
         self.group_floor_ = np.array([k[1] for k in gkeys], dtype=int)
-        self.rp_group_ = np.array([gindex[(int(b), int(f))] for b, f in zip(rp.building, rp.floor)], dtype=int)
+        self.rp_group_ = np.array([gindex[(int(b), int(f))] for b, f in zip(rp.building, rp.floor, strict=True)], dtype=int)
         self.rp_xy_ = rp.xy
         self.rp_key_index_ = {k: i for i, k in enumerate(rp.keys)}
         X = self.encoder_.transform(fs.rss)
@@ -310,7 +310,7 @@ class FingerprintModel:
             cands = [
                 Candidate(label=labels[r], x=float(self.rp_xy_[r, 0]), y=float(self.rp_xy_[r, 1]),
                           floor=int(self.rp_.floor[r]), probability=float(p))
-                for r, p in zip(pred.top_rp[i], pred.top_p[i]) if p > 0 and r >= 0
+                for r, p in zip(pred.top_rp[i], pred.top_p[i], strict=True) if p > 0 and r >= 0
             ]
             best = int(pred.best_rp[i])
             out.append(Fix(
@@ -346,7 +346,3 @@ def _concat_predictions(parts: list[Prediction]) -> Prediction:
     cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
     return Prediction(cat("x"), cat("y"), cat("floor"), cat("building"), cat("covariance"),
                       cat("best_rp"), cat("top_rp"), cat("top_p"))
-
-
-def filter_kinds(tx_ids: Sequence[str], kinds: Sequence[str] | None) -> list[str]:
-    return list(tx_ids) if not kinds else [t for t in tx_ids if tx_kind(t) in kinds]

@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import io
 import os
-from collections.abc import Iterable
 
 import numpy as np
 
@@ -16,11 +15,6 @@ from .dataset import FingerprintSet
 
 SURVEY_COLUMNS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
 UJI_NOT_HEARD = 100.0
-
-
-def _float_or_nan(s: str) -> float:
-    s = s.strip()
-    return float(s) if s else np.nan
 
 
 def read_survey_csv(source) -> FingerprintSet:
@@ -150,11 +144,3 @@ def load(path, fmt: str = "csv") -> FingerprintSet:
     if fmt == "ujible":
         return read_uji_ble(path)
     raise ValueError(f"unknown format {fmt!r}")
-
-
-def concat(sets: Iterable[FingerprintSet]) -> FingerprintSet:
-    """Stack sets (union of transmitters)."""
-    sets = list(sets)
-    tx = sorted({t for s in sets for t in s.tx_ids})
-    rows = [r for s in sets for r in s.to_rows()]
-    return FingerprintSet.from_rows(rows, tx)

@@ -84,11 +84,6 @@ class FuzzyKFTracker(_LinearKF):
         self.last_residual_m: float | None = None
         self.last_r: float = r_levels[0]
 
-    def r_for_residual(self, residual: float) -> float:
-        """The R level (relative in ``scale="fix"``, m² in ``scale="none"``) for a residual
-        (in units of the fix's σ, or in metres)."""
-        return self.params["r_levels"][self._level(residual)]
-
     def _level(self, residual: float) -> int:
         for i, threshold in enumerate(self.params["residual_thresholds_m"]):
             if residual < threshold:
