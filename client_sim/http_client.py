@@ -82,9 +82,6 @@ class LocalizerClient:
     async def update_site_settings(self, site_id, settings: dict) -> dict:
         return await self.request("PATCH", f"/api/v1/sites/{site_id}", {"settings": settings})
 
-    async def delete_site(self, site_id) -> None:
-        await self.request("DELETE", f"{API}/sites/{site_id}")
-
     async def upload_survey(self, site_id, fingerprints: list[dict]) -> dict:
         return await self.request("POST", f"{API}/sites/{site_id}/surveys", {"fingerprints": fingerprints})
 

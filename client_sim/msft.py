@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -250,7 +251,7 @@ def steps_from_events(ev: UncalibratedSteps, weinberg_k: float, heading_offset_d
     lengths = weinberg(ev.swing, np.zeros_like(ev.swing), weinberg_k)
     heads = (ev.heading_deg + heading_offset_deg) % 360.0
     return [PdrStep(float(t), float(length), float(h), length_std_m, heading_std_deg)
-            for t, length, h in zip(ev.t, lengths, heads)]
+            for t, length, h in zip(ev.t, lengths, heads, strict=True)]
 
 
 def dead_reckon(steps: list[PdrStep], start_xy, t0: float) -> np.ndarray:
@@ -276,7 +277,7 @@ def segment_displacements(ev: UncalibratedSteps, waypoints: np.ndarray, weinberg
     h = np.radians(ev.heading_deg)
     dx, dy = lengths * np.sin(h), lengths * np.cos(h)
     pdr, true = [], []
-    for (t0, x0, y0), (t1, x1, y1) in zip(waypoints[:-1], waypoints[1:]):
+    for (t0, x0, y0), (t1, x1, y1) in pairwise(waypoints):
         if t_until is not None and t1 > t_until + 1e-9:
             break
         m = (ev.t > t0) & (ev.t <= t1)

@@ -141,7 +141,7 @@ def site_calibration(maps: list[Prepared], min_segment_m: float = 3.0) -> dict:
     lengths: list[float] = []
     for p in maps:
         pdr, true = segment_displacements(p.events, p.walk.waypoints, k)
-        for a, b in zip(pdr, true):
+        for a, b in zip(pdr, true, strict=True):
             lb, la = float(np.linalg.norm(b)), float(np.linalg.norm(a))
             if lb < min_segment_m or la == 0:
                 continue
@@ -399,7 +399,7 @@ def markdown(result: dict) -> str:
         lines.append(f"| {k} | {s['n']} | {s['mean']} | {s['p50']} | {s['p90']} | {s['max']} |")
     names = list(result["table"])
     per = result["per_walk_mean"]
-    lines += ["", "Walks (of %d) where a method's mean error is below PDR alone / fingerprinting alone:" % len(per), ""]
+    lines += ["", f"Walks (of {len(per)}) where a method's mean error is below PDR alone / fingerprinting alone:", ""]
     for k in names:
         if k in ("pdr-only", "fingerprint-only"):
             continue

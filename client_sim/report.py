@@ -86,7 +86,7 @@ def plot_trajectories(results: list[dict], path: Path) -> None:
                 panels.append((res["scenario"], phone))
     n = max(1, len(panels))
     fig, axes = plt.subplots(1, n, figsize=(5 * n, 4), squeeze=False)
-    for ax, (scenario, phone) in zip(axes[0], panels):
+    for ax, (scenario, phone) in zip(axes[0], panels, strict=False):  # one empty axis when no panel
         try:
             plot_floor(ax, get_world(scenario), int(phone["truth"]["floor"][0]))
         except (KeyError, FileNotFoundError, OSError):
@@ -129,7 +129,7 @@ def plot_scenario(world, path: str | Path, seed: int = 0) -> None:
     fig, axes = plt.subplots(1, len(levels), figsize=(5 * len(levels), 4), squeeze=False)
     trace = simulate_phone(world, world.routes[0], seed)
     dr = trace.dead_reckoning()
-    for ax, level in zip(axes[0], levels):
+    for ax, level in zip(axes[0], levels, strict=True):
         plot_floor(ax, world, level)
         rps = np.array([p[:2] for p in world.reference_points if p[2] == level] or np.empty((0, 2)))
         if len(rps):

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
+from itertools import pairwise
 from pathlib import Path
 
 BLE_UUID = "f7826da6-4fa2-4e98-8024-bc5b71e0893e"
@@ -159,7 +160,7 @@ def ring(x0: float, y0: float, x1: float, y1: float, step: float, floor: int) ->
     """Points every ``step`` m along the rectangle (x0,y0)-(x1,y1), counter-clockwise."""
     corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)]
     pts: list[Waypoint] = []
-    for (ax, ay), (bx, by) in zip(corners, corners[1:]):
+    for (ax, ay), (bx, by) in pairwise(corners):
         n = max(1, int(round(math.hypot(bx - ax, by - ay) / step)))
         pts += [(ax + (bx - ax) * k / n, ay + (by - ay) * k / n, floor) for k in range(n)]
     return pts
@@ -250,7 +251,3 @@ def get_world(name_or_path: str) -> World:
     if name_or_path in SCENARIOS:
         return SCENARIOS[name_or_path]()
     return load_world(name_or_path)
-
-
-def with_seed(world: World, seed: int) -> World:
-    return replace(world, seed=seed)

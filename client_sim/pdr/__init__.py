@@ -55,7 +55,7 @@ def run_pdr(imu: ImuData, config: PdrConfig | None = None, initial_heading_deg: 
     headings = heading_track(imu, cfg, initial_heading_deg)
     lengths = weinberg(events.a_max, events.a_min, cfg.weinberg_k)
     step_h = heading_at(imu.t, headings, events.t)
-    steps = [PdrStep(float(t), float(l), float(h)) for t, l, h in zip(events.t, lengths, step_h)]
+    steps = [PdrStep(float(t), float(length), float(h)) for t, length, h in zip(events.t, lengths, step_h, strict=True)]
     return steps, headings
 
 

@@ -19,8 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-GRAVITY = 9.80665
-
 
 def resample_uniform(t: np.ndarray, values: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
     """Linearly resample irregular sensor samples onto a uniform time grid.
@@ -96,7 +94,7 @@ def find_step_peaks(t: np.ndarray, acc: np.ndarray, params: PeakDetectorParams |
         prominence=p.min_prominence,
     )
     starts = np.concatenate([[max(0, peaks[0] - int(0.6 * p.rate_hz))], peaks[:-1]]) if len(peaks) else peaks
-    a_min = np.array([smooth[s:e + 1].min() for s, e in zip(starts, peaks)])
+    a_min = np.array([smooth[s:e + 1].min() for s, e in zip(starts, peaks, strict=True)])
     return StepPeaks(grid[peaks], smooth[peaks], a_min)
 
 
@@ -117,7 +115,7 @@ def detect_steps_two_threshold(
     a = np.asarray(a_vertical, dtype=float)
     steps: list[float] = []
     armed_at: float | None = None
-    for ti, ai in zip(t, a):
+    for ti, ai in zip(t, a, strict=True):
         if armed_at is not None and ti - armed_at > window_s:
             armed_at = None
         if armed_at is None:

@@ -9,6 +9,7 @@ major/minor, and lines of types the reader must skip (one truncated).
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -104,7 +105,7 @@ def _events_along(waypoints: np.ndarray, offset_deg: float, k: float, per_s: flo
     """Steps along the waypoint path whose magnetic heading is the truth minus
     ``offset_deg`` and whose Weinberg swing gives the true length with ``k``."""
     ts, swings, heads = [], [], []
-    for (t0, x0, y0), (t1, x1, y1) in zip(waypoints[:-1], waypoints[1:]):
+    for (t0, x0, y0), (t1, x1, y1) in pairwise(waypoints):
         n = int(round((t1 - t0) * per_s))
         length = math.hypot(x1 - x0, y1 - y0) / n
         h = math.degrees(math.atan2(x1 - x0, y1 - y0))

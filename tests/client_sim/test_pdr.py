@@ -13,8 +13,8 @@ from client_sim.world import corridor_loop
 CLEAN = ImuParams(weinberg_k=0.40, mag_disturbance_ut=0.0)  # a person whose true k is not the default
 
 
-def _walk(route, seed, gait=Gait()):
-    walk = walk_route(route, gait, np.random.default_rng(seed))
+def _walk(route, seed, gait: Gait | None = None):
+    walk = walk_route(route, gait or Gait(), np.random.default_rng(seed))
     imu = synthesize_imu(walk, np.random.default_rng(seed + 100), CLEAN)
     return walk, imu
 

@@ -1,5 +1,7 @@
 """Properties of the radio model: distance, walls, body shadowing, spatial correlation, seeds."""
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ def world(walls=(), **radio) -> World:
 def test_rss_falls_with_distance():
     m = RadioModel(world(shadowing_sigma_db=0.0))
     rss = [m.mean_rss(TX, d, 0.0, 0) for d in (1, 2, 5, 10, 20)]
-    assert all(a > b for a, b in zip(rss, rss[1:]))
+    assert all(a > b for a, b in pairwise(rss))
     assert rss[0] == pytest.approx(-40.0)
     assert rss[2] - rss[3] == pytest.approx(10 * 2.5 * np.log10(2))  # log-distance slope
 
