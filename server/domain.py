@@ -15,6 +15,10 @@ from server.estimation.types import Estimate, Fix, ScanNote
 
 # --- tracking sessions ---------------------------------------------------------------------
 
+#: most steps, and most scans, in one batch (413 beyond)
+MAX_BATCH_STEPS = 1000
+MAX_BATCH_SCANS = 1000
+
 
 @dataclass(frozen=True)
 class SessionInfo:

@@ -185,10 +185,6 @@ class SurveyResult(BaseModel):
 
 # --- tracking sessions -------------------------------------------------------------
 
-#: most steps, and most scans, in one batch (413 beyond)
-MAX_BATCH_STEPS = 1000
-MAX_BATCH_SCANS = 1000
-
 Cov2 = tuple[tuple[Metres, Metres], tuple[Metres, Metres]]
 
 

@@ -9,8 +9,10 @@ from fastapi.responses import JSONResponse
 
 from server.api.deps import Device
 from server.api.fastpath import json_body_doc, read_json, run_blocking
-from server.schemas import BatchIn, BatchResult, EstimateOut, SessionIn, SessionOut
-from server.services.sessions import SessionService
+from server.domain import BatchAnswer, SessionInfo
+from server.estimation.types import Estimate, Scan, Step
+from server.schemas import BatchIn, BatchResult, EstimateOut, SessionIn, SessionOut, SkippedScan
+from server.services.sessions import InitialPosition, SessionService
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 
@@ -24,7 +26,9 @@ def _service(request: Request) -> SessionService:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionOut,
              responses={404: {"description": "Unknown site."}, 422: {"description": "Bad filter, model or initial."}})
 def open_session(body: SessionIn, request: Request, principal: Device) -> SessionOut:
-    return _service(request).open(principal, body)
+    init = body.initial
+    initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance)
+    return session_out(_service(request).open(principal, body.site_id, body.filter, body.model_id, initial))
 
 
 @router.post(
@@ -42,7 +46,14 @@ async def post_batch(session_id: str, request: Request, principal: Device) -> Re
     """Apply a batch once; a batch whose seq was already applied gets the stored answer again.
     The answer is sent as stored (plain JSON), which is also what a replay gets."""
     batch = await read_json(request, BatchIn)
-    return JSONResponse(await run_blocking(request, _service(request).feed, principal, session_id, batch))
+    steps = [
+        Step(p.t, p.length_m, p.heading_deg, **{k: v for k, v in (("length_std_m", p.length_std_m),
+                                                                  ("heading_std_deg", p.heading_std_deg)) if v is not None})
+        for p in batch.steps
+    ]
+    scans = [Scan(c.t, dict(c.rss), c.heading_deg) for c in batch.scans]
+    answer = await run_blocking(request, _service(request).feed, principal, session_id, batch.seq, steps, scans)
+    return JSONResponse(batch_result(answer).model_dump(mode="json"))
 
 
 @router.get("", response_model=list[SessionOut])
@@ -55,20 +66,42 @@ def list_sessions(
 ) -> list[SessionOut]:
     """The sessions opened with the caller's key (an admin key sees every session), newest
     first: a phone that restarts can find the session it was feeding."""
-    return _service(request).list(principal, site_id, status, limit)
+    return [session_out(info) for info in _service(request).list(principal, site_id, status, limit)]
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)
 def get_session(session_id: str, request: Request, principal: Device) -> SessionOut:
-    return _service(request).get(principal, session_id)
+    return session_out(_service(request).get(principal, session_id))
 
 
 @router.get("/{session_id}/track", response_model=list[EstimateOut], responses=_NOT_YOURS)
 def get_track(session_id: str, request: Request, principal: Device) -> list[EstimateOut]:
-    return _service(request).track(principal, session_id)
+    return [estimate_out(e) for e in _service(request).track(principal, session_id)]
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_NOT_YOURS)
 def close_session(session_id: str, request: Request, principal: Device) -> Response:
     _service(request).close(principal, session_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def estimate_out(e: Estimate) -> EstimateOut:
+    return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
+                       source=e.source)  # type: ignore[arg-type]  # source is one of the three by construction
+
+
+def session_out(info: SessionInfo) -> SessionOut:
+    return SessionOut(
+        id=info.id, site_id=info.site_id, filter=info.filter, model_id=info.model_id, status=info.status,  # type: ignore[arg-type]
+        estimate=None if info.estimate is None else estimate_out(info.estimate), created_at=info.created_at,
+        last_seq=info.last_seq, track_length=info.track_length,
+    )
+
+
+def batch_result(a: BatchAnswer) -> BatchResult:
+    return BatchResult(
+        seq=a.seq, estimate=None if a.estimate is None else estimate_out(a.estimate),
+        applied_steps=a.applied_steps, applied_scans=a.applied_scans,
+        skipped_scans=[SkippedScan(index=n.index, reason=n.reason) for n in a.skipped_scans],
+        rejected_fixes=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_fixes],
+    )

@@ -1,28 +1,44 @@
-"""One walking session's estimator: a tracker plus floor hysteresis, landmark snaps and
-beacon ranges, fed with steps and scans in time order. Plain data in and out
-(``to_dict``/``from_dict``), so the server can store it after every batch and resume it
-in any process. Fixes come from the caller (a callback), so this module knows nothing
-about fingerprint models, HTTP or the database.
+"""One walking session's tracking, batch by batch: the whole algorithm, free of web and database.
+
+``SessionEstimator.apply_batch`` takes a batch's steps and scans, a ``FixSource`` (what
+turns a scan into a fingerprint fix: the server's positioning service, or anything a test
+or an offline evaluation supplies) and the site's map, and returns a ``BatchOutcome``. It
+orders the inputs by time, refuses inputs older than the last applied one, starts a
+session without a given position on its first fix (the cold-start fusion of DESIGN.md),
+predicts with steps, updates with fixes through an innovation gate, follows floors with
+hysteresis, ranges to beacons, snaps to landmarks and proposes crowd fingerprints.
+
+The state is plain data (``to_dict``/``from_dict``), so the server stores it after every
+batch and any process resumes it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import replace
+from typing import Any, Protocol
 
 import numpy as np
 
-from server.estimation.tracking import (
-    FloorTracker,
-    LandmarkCorrector,
-    apply_snap,
-    make_tracker,
-    range_and_std,
-    tracker_from_dict,
+from server.estimation.fingerprint.fusion import cold_start_fix
+from server.estimation.radio import multilaterate, range_and_std, range_from_rss
+from server.estimation.tracking import FloorTracker, LandmarkCorrector, apply_snap, make_tracker, tracker_from_dict
+from server.estimation.tracking.base import Tracker, fix_cov
+from server.estimation.tracking.crowd import gate, make_crowd_point
+from server.estimation.types import (
+    Area,
+    BatchOutcome,
+    Beacon,
+    CrowdCandidate,
+    Estimate,
+    Fix,
+    LateInput,
+    LateInputs,
+    NoFix,
+    Scan,
+    ScanNote,
+    SiteMap,
+    Step,
 )
-from server.estimation.tracking.base import fix_cov
-from server.estimation.types import Fix, Scan, Step
 
 #: initial covariance (m²) when the phone gives a start position without one
 DEFAULT_INITIAL_VAR_M2 = 1.0
@@ -36,32 +52,11 @@ GATE_D2 = 13.82
 MAX_GATED_IN_A_ROW = 3
 
 
-@dataclass(frozen=True)
-class Beacon:
-    """A transmitter with a known position; radio parameters make ranges possible."""
+class FixSource(Protocol):
+    """Turns one scan into a fingerprint fix, restricted to ``near`` when given; raises
+    ``NoFix`` (saying why) when the scan gives none."""
 
-    id: str
-    x: float
-    y: float
-    floor: int | None
-    tx_power_dbm: float | None = None
-    path_loss_exponent: float | None = None
-
-    @property
-    def ranged(self) -> bool:
-        return self.tx_power_dbm is not None and self.path_loss_exponent is not None
-
-
-def estimate(t: float | None, mean, cov, floor: int, source: str) -> dict[str, Any]:
-    cov = np.asarray(cov, float)
-    return {
-        "t": None if t is None else float(t),
-        "x": float(mean[0]),
-        "y": float(mean[1]),
-        "floor": int(floor),
-        "covariance": [[float(cov[0, 0]), float(cov[0, 1])], [float(cov[1, 0]), float(cov[1, 1])]],
-        "source": source,
-    }
+    def fix(self, scan: Scan, near: Area | None) -> Fix: ...
 
 
 class SessionEstimator:
@@ -71,93 +66,154 @@ class SessionEstimator:
     def __init__(self, filter: str, seed: int):
         self.filter = filter
         self.seed = int(seed)
-        self.tracker = None
+        self.tracker: Tracker | None = None
         self.floors: FloorTracker | None = None
         self.landmarks = LandmarkCorrector({})
         self.last_t: float | None = None
-        self.estimate: dict[str, Any] | None = None
-        #: set (not stored) when the initial estimate, opened without a time, got one now
-        self.init_t: float | None = None
+        self.estimate: Estimate | None = None
         #: fixes refused by the innovation gate since the last accepted one
         self.gated_in_a_row = 0
-        #: why the last scan's fix was refused (None: it was used); not stored
-        self.rejected: str | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
     def started(self) -> bool:
         return self.tracker is not None
 
-    def start(self, mean, cov, floor: int, walls, t: float | None, source: str) -> dict[str, Any]:
+    def start(self, mean, cov, floor: int, walls, t: float | None, source: str) -> Estimate:
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
         self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed)
         self.floors = FloorTracker(floor)
         return self._record(t, source)
 
-    def _record(self, t: float | None, source: str) -> dict[str, Any]:
-        self.estimate = estimate(t, self.tracker.mean, self.tracker.covariance, self.floors.floor, source)
+    def _record(self, t: float | None, source: str) -> Estimate:
+        assert self.tracker is not None and self.floors is not None
+        self.estimate = Estimate.of(t, self.tracker.mean, self.tracker.covariance, self.floors.floor, source)
         return self.estimate
 
-    def search_region(self) -> tuple[float, float, float, float] | None:
-        return self.tracker.search_region() if self.started else None
+    def search_area(self) -> Area | None:
+        """Where the tracker allows the fingerprint model to look (None: anywhere)."""
+        box = self.tracker.search_region() if self.tracker is not None else None
+        if box is None:
+            return None
+        x0, y0, x1, y1 = box
+        return Area((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2)
 
-    # -- feeding ------------------------------------------------------------------
+    # -- a whole batch ----------------------------------------------------------------
+    def apply_batch(
+        self, steps: list[Step], scans: list[Scan], fixes: FixSource, site: SiteMap, *, crowdsourcing: bool = False,
+    ) -> BatchOutcome:
+        """Apply a batch in time order. Raises ``LateInputs`` (and changes nothing) when an
+        input is older than the last applied one. A scan without a fix is skipped (its time
+        still counts); a fix the innovation gate refuses is reported, and the scan's beacon
+        ranges and landmarks still apply. With ``crowdsourcing``, tight estimates that agree
+        with their scan's own fix become crowd candidates (never the cold-start scan: there
+        the estimate *is* the fix)."""
+        ordered = time_order(steps, scans)
+        if self.last_t is not None:
+            late = [LateInput(kind, i, item.t) for kind, i, item in ordered if item.t < self.last_t]
+            if late:
+                raise LateInputs(late, self.last_t)
+        init_undated = self.estimate is not None and self.estimate.source == "init" and self.estimate.t is None
+        estimates: list[Estimate] = []
+        skipped: list[ScanNote] = []
+        rejected: list[ScanNote] = []
+        crowd: list[CrowdCandidate] = []
+        applied_steps = applied_scans = 0
+        for kind, i, item in ordered:
+            if isinstance(item, Step):
+                e = self.step(item)
+                if e is not None:
+                    applied_steps += 1
+                    estimates.append(e)
+                continue
+            try:
+                fix = self._fix(item, fixes, site)
+            except NoFix as why:
+                skipped.append(ScanNote(i, str(why)))
+                self.advance(item.t)
+                continue
+            cold = not self.started
+            e, refused = self.scan(item, fix, site)
+            applied_scans += 1
+            estimates.append(e)
+            if refused is not None:
+                rejected.append(ScanNote(i, refused))
+            elif crowdsourcing and not cold and e.floor == fix.floor and gate([e.x, e.y], e.covariance, fix.mean, item.rss):
+                crowd.append(CrowdCandidate(make_crowd_point(e.x, e.y, e.floor, item.rss), item))
+        return BatchOutcome(
+            estimates=tuple(estimates), estimate=self.estimate, applied_steps=applied_steps,
+            applied_scans=applied_scans, skipped_scans=tuple(skipped), rejected_fixes=tuple(rejected),
+            crowd=tuple(crowd), init_t=ordered[0][2].t if init_undated and ordered else None,
+        )
+
+    def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
+        """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint
+        fix ⊕ multilateration from positioned transmitters, either alone when the other is missing."""
+        if self.started:
+            return fixes.fix(scan, self.search_area())
+        fingerprint: Fix | None = None
+        why: NoFix | None = None
+        try:
+            fingerprint = fixes.fix(scan, None)
+        except NoFix as exc:
+            why = exc
+        ml = multilateration_fix(scan.rss, site.beacons, None if fingerprint is None else fingerprint.floor)
+        if fingerprint is None and ml is None:
+            raise why if why is not None else NoFix("no fix")
+        return cold_start_fix(fingerprint, ml)
+
+    # -- single inputs --------------------------------------------------------------
     def advance(self, t: float) -> None:
         """Note an input at time ``t`` (applied or skipped); an initial position given without
         a time takes the time of the first input."""
-        if self.estimate is not None and self.estimate["source"] == "init" and self.estimate["t"] is None:
-            self.estimate["t"] = float(t)
-            self.init_t = float(t)
+        if self.estimate is not None and self.estimate.source == "init" and self.estimate.t is None:
+            self.estimate = replace(self.estimate, t=float(t))
         self.last_t = t
 
-    def step(self, step: Step) -> dict[str, Any] | None:
+    def step(self, step: Step) -> Estimate | None:
         """Predict with one step; None (step dropped) before the session has a position."""
         self.advance(step.t)
-        if not self.started:
+        if self.tracker is None:
             return None
         self.tracker.predict(step)
         return self._record(step.t, "step")
 
-    def scan(
-        self,
-        scan: Scan,
-        fix: Fix,
-        beacons: dict[str, Beacon],
-        walls_of: Callable[[int], Any],
-    ) -> dict[str, Any]:
+    def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on
-        its first fix. ``walls_of(level)`` gives a floor's walls when the floor changes.
-        A fix that fails the innovation gate moves nothing (``rejected`` says why); the
-        scan's beacon ranges and landmarks still apply."""
+        its first fix. Returns the estimate and, when the innovation gate refused the fix
+        (it then moves nothing), why."""
         self.advance(scan.t)
-        self.rejected = None
-        if not self.started:
-            return self.start(fix.mean, fix.covariance, fix.floor, walls_of(fix.floor), scan.t, "scan")
+        if self.tracker is None or self.floors is None:
+            return self.start(fix.mean, fix.covariance, fix.floor, site.walls_of(fix.floor), scan.t, "scan"), None
+        refused = None
         floor_before = self.floors.floor
         if self.floors.observe(fix.floor):
             # A confirmed floor change: walls of the new floor, restart from the fix there.
-            self.tracker.set_walls(walls_of(self.floors.floor))
+            self.tracker.set_walls(site.walls_of(self.floors.floor))
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
         elif fix.floor == floor_before:
-            self._update(fix)
+            refused = self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)
         floor = self.floors.floor
         if self.tracker.supports_range:
             for tx_id, rss in scan.rss.items():
-                b = beacons.get(tx_id)
-                if b is not None and b.ranged and b.floor in (None, floor):
+                b = site.beacons.get(tx_id)
+                if b is not None and b.tx_power_dbm is not None and b.path_loss_exponent is not None \
+                        and b.floor in (None, floor):
                     r, std = range_and_std(rss, b.tx_power_dbm, b.path_loss_exponent)
                     self.tracker.update_range((b.x, b.y), r, std)
         self.landmarks.beacons = {
-            k: (b.x, b.y) for k, b in beacons.items() if k.startswith("ble:") and b.floor in (None, floor)
+            k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.floor in (None, floor)
         }
         for snap in self.landmarks.observe(scan.rss)[:1]:
             apply_snap(self.tracker, snap)
-        return self._record(scan.t, "scan")
+        return self._record(scan.t, "scan"), refused
 
-    def _update(self, fix: Fix) -> None:
-        """Update with the fix unless the innovation gate refuses it; after ``MAX_GATED_IN_A_ROW``
-        refusals in a row the next fix is used anyway, so a lost tracker is pulled back."""
+    def _update(self, fix: Fix) -> str | None:
+        """Update with the fix unless the innovation gate refuses it (then: why); after
+        ``MAX_GATED_IN_A_ROW`` refusals in a row the next fix is used anyway, so a lost
+        tracker is pulled back."""
+        assert self.tracker is not None
         R = fix_cov(fix.covariance)
         innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
         S = np.asarray(self.tracker.covariance, float) + R
@@ -165,10 +221,10 @@ class SessionEstimator:
         if d2 <= GATE_D2 or self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
             self.gated_in_a_row = 0
             self.tracker.update(fix)
-        else:
-            self.gated_in_a_row += 1
-            self.rejected = (f"fix {float(np.hypot(*innovation)):.1f} m from the estimate is an outlier "
-                             f"(squared Mahalanobis distance {d2:.1f} > {GATE_D2})")
+            return None
+        self.gated_in_a_row += 1
+        return (f"fix {float(np.hypot(*innovation)):.1f} m from the estimate is an outlier "
+                f"(squared Mahalanobis distance {d2:.1f} > {GATE_D2})")
 
     # -- persistence ----------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -180,7 +236,7 @@ class SessionEstimator:
             "floors": None if self.floors is None else self.floors.to_dict(),
             "landmarks": self.landmarks.to_dict(),
             "last_t": self.last_t,
-            "estimate": self.estimate,
+            "estimate": None if self.estimate is None else self.estimate.to_dict(),
             "gated_in_a_row": self.gated_in_a_row,
         }
 
@@ -193,14 +249,15 @@ class SessionEstimator:
         obj.floors = None if d["floors"] is None else FloorTracker.from_dict(d["floors"])
         obj.landmarks = LandmarkCorrector.from_dict(d["landmarks"])
         obj.last_t = d["last_t"]
-        obj.estimate = d["estimate"]
+        obj.estimate = None if d["estimate"] is None else Estimate.from_dict(d["estimate"])
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         return obj
 
 
 def time_order(steps: list[Step], scans: list[Scan]) -> list[tuple[str, int, Step | Scan]]:
     """Steps and scans merged by time (stable; at equal times steps come first)."""
-    items = [("step", i, s) for i, s in enumerate(steps)] + [("scan", i, s) for i, s in enumerate(scans)]
+    items: list[tuple[str, int, Step | Scan]] = [("step", i, s) for i, s in enumerate(steps)]
+    items += [("scan", i, s) for i, s in enumerate(scans)]
     items.sort(key=lambda it: (it[2].t, 0 if it[0] == "step" else 1, it[1]))
     return items
 
@@ -217,9 +274,6 @@ def multilateration_fix(
     (ranges by the path-loss model, each transmitter's own R0/γ where stored), on
     ``floor_hint`` or else the floor of the strongest heard transmitter that has one.
     None when no positioned transmitter is heard or the floor cannot be told."""
-    from server.estimation.fingerprint import multilaterate
-    from server.estimation.tracking import range_from_rss
-
     heard = sorted(((v, beacons[k]) for k, v in rss.items() if k in beacons), key=lambda vb: -vb[0])
     floor = floor_hint
     if floor is None:

@@ -64,3 +64,144 @@ class Fix:
     @property
     def mean(self) -> np.ndarray:
         return np.array([self.x, self.y])
+
+
+Covariance2 = tuple[tuple[float, float], tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One point of a session's track: where the tracker is after an input.
+
+    ``source`` is ``init`` (the session's given start), ``step`` or ``scan``; ``t`` is None
+    only for an initial position given before the session's first input."""
+
+    t: float | None
+    x: float
+    y: float
+    floor: int
+    covariance: Covariance2
+    source: str
+
+    @classmethod
+    def of(cls, t: float | None, mean, cov, floor: int, source: str) -> Estimate:
+        c = np.asarray(cov, float)
+        return cls(
+            t=None if t is None else float(t), x=float(mean[0]), y=float(mean[1]), floor=int(floor),
+            covariance=((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1]))), source=source,
+        )
+
+    def to_dict(self) -> dict:
+        """The JSON form (also the API's ``Estimate``)."""
+        return {"t": self.t, "x": self.x, "y": self.y, "floor": self.floor,
+                "covariance": [list(self.covariance[0]), list(self.covariance[1])], "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Estimate:
+        (a, b), (c, e) = d["covariance"]
+        return cls(d["t"], d["x"], d["y"], d["floor"], ((a, b), (c, e)), d["source"])
+
+
+@dataclass(frozen=True)
+class Beacon:
+    """A transmitter with a known position; radio parameters make ranges possible."""
+
+    id: str
+    x: float
+    y: float
+    floor: int | None
+    tx_power_dbm: float | None = None
+    path_loss_exponent: float | None = None
+
+
+@dataclass(frozen=True)
+class SiteMap:
+    """What a tracker knows of a site: positioned transmitters by id and walls by floor level."""
+
+    beacons: dict[str, Beacon] = field(default_factory=dict)
+    walls: dict[int, list] = field(default_factory=dict)
+
+    def walls_of(self, level: int) -> list:
+        return self.walls.get(level, [])
+
+
+@dataclass(frozen=True)
+class Area:
+    """A circle to which a fingerprint model may restrict its candidates."""
+
+    x: float
+    y: float
+    radius_m: float
+
+
+@dataclass(frozen=True)
+class CrowdPoint:
+    """A crowdsourced fingerprint: a confident estimate's position with the scan's RSS.
+
+    ``counts`` says how many readings each transmitter's mean ``rss`` holds; ``count`` how
+    many points were merged into this one."""
+
+    x: float
+    y: float
+    floor: int
+    rss: dict[str, float]
+    count: int = 1
+    counts: dict[str, int] | None = None
+
+    def tx_counts(self) -> dict[str, int]:
+        return self.counts if self.counts is not None else dict.fromkeys(self.rss, self.count)
+
+
+@dataclass(frozen=True)
+class ScanNote:
+    """Why the scan at ``index`` of its batch gave no fix (skipped) or had its fix refused."""
+
+    index: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class CrowdCandidate:
+    """A crowd fingerprint a batch proposes, with the scan it comes from."""
+
+    point: CrowdPoint
+    scan: Scan
+
+
+@dataclass(frozen=True)
+class BatchOutcome:
+    """What one batch did to a session: the new track estimates (in time order), the
+    estimate after it, how many steps and scans moved the tracker, scans without a fix,
+    fixes the innovation gate refused, and crowd fingerprints to store."""
+
+    estimates: tuple[Estimate, ...]
+    estimate: Estimate | None
+    applied_steps: int
+    applied_scans: int
+    skipped_scans: tuple[ScanNote, ...]
+    rejected_fixes: tuple[ScanNote, ...]
+    crowd: tuple[CrowdCandidate, ...]
+    #: the time the initial estimate (given without one) took from this batch's first input
+    init_t: float | None = None
+
+
+@dataclass(frozen=True)
+class LateInput:
+    """A step or scan dated before the session's last applied input."""
+
+    kind: str  # "step" or "scan"
+    index: int
+    t: float
+
+
+class LateInputs(ValueError):
+    """A batch holds inputs older than what the session already applied; nothing was applied."""
+
+    def __init__(self, items: list[LateInput], last_t: float):
+        super().__init__(f"{len(items)} inputs before the last applied time {last_t}")
+        self.items = items
+        self.last_t = last_t
+
+
+class NoFix(Exception):
+    """A scan gives no fix (no model, no known transmitter...); ``str(exc)`` says why."""

@@ -16,17 +16,17 @@ from typing import Any
 from server import repositories as repo
 from server.db import Database
 from server.errors import NotFound
-from server.estimation.session import Beacon
+from server.estimation.types import Beacon, SiteMap
 from server.services.lru import Lru
 from server.services.positioning import ServingModel, ready_model
 
 
-@dataclass
+@dataclass(frozen=True)
 class SiteContext:
     revision: str
     settings: dict[str, Any]
-    beacons: dict[str, Beacon]
-    walls: dict[int, list]
+    #: positioned transmitters and walls, as the tracker sees them
+    map: SiteMap
     #: the site's active model, when it is ready (a session pinned to a model asks for it)
     active_model: ServingModel | None
 
@@ -53,11 +53,13 @@ class SiteContexts:
         return SiteContext(
             revision=found["revision"],
             settings=found["settings"],
-            beacons={
-                t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
-                for t in found["transmitters"]
-                if t["y"] is not None
-            },
-            walls=found["walls"],
+            map=SiteMap(
+                beacons={
+                    t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
+                    for t in found["transmitters"]
+                    if t["y"] is not None
+                },
+                walls=found["walls"],
+            ),
             active_model=ready_model(found["active_model"]),
         )

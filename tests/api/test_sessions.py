@@ -566,24 +566,24 @@ def test_site_settings_reject_unknown_keys(admin, site, snapshot):
 def test_a_batch_that_fails_mid_write_leaves_nothing_and_can_be_resent(device, site, snapshot, monkeypatch):
     """State, last seq, answer and estimates commit together: a failure after the
     compare-and-set (here: storing the estimates) rolls all of it back."""
-    import server.repositories as repo
+    import server.store.sessions as store
 
     sid = open_session(device, site, "ekf")["id"]
     device.post(f"/api/v1/sessions/{sid}/batches", json=batch(0, 0.0, 2))
     before = snapshot()
-    real = repo.add_track_estimates
+    real = store._estimate_rows
     calls = []
 
     def broken(*args, **kwargs):
         calls.append(1)
         raise RuntimeError("disk on fire")
 
-    monkeypatch.setattr(repo, "add_track_estimates", broken)
+    monkeypatch.setattr(store, "_estimate_rows", broken)
     failed = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(1, 1.0, 2))
     assert failed.status_code == 500 and failed.json() == {"detail": "internal server error"}
     assert calls
     assert snapshot() == before
-    monkeypatch.setattr(repo, "add_track_estimates", real)
+    monkeypatch.setattr(store, "_estimate_rows", real)
     again = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(1, 1.0, 2))
     assert again.status_code == 200 and again.json()["applied_steps"] == 2
     assert len(device.get(f"/api/v1/sessions/{sid}/track").json()) == 1 + 4

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from server.estimation.session import Beacon, SessionEstimator, multilateration_fix, time_order
+from server.estimation.session import SessionEstimator, multilateration_fix, time_order
 from server.estimation.tracking import tracker_names
-from server.estimation.types import Fix, Scan, Step
+from server.estimation.types import Beacon, Estimate, Fix, Scan, SiteMap, Step
 
 BEACONS = {
     "ble:b1": Beacon("ble:b1", 5.0, 0.0, 0, -59.0, 2.0),
@@ -33,14 +33,18 @@ def inputs():
     return out
 
 
-def feed(est: SessionEstimator, items) -> list[dict]:
+SITE = SiteMap(BEACONS)
+EMPTY = SiteMap()
+
+
+def feed(est: SessionEstimator, items) -> list[Estimate | None]:
     out = []
     for kind, item in items:
         if kind == "step":
             out.append(est.step(item))
         else:
             scan, fix = item
-            out.append(est.scan(scan, fix, BEACONS, lambda level: []))
+            out.append(est.scan(scan, fix, SITE)[0])
     return out
 
 
@@ -58,28 +62,25 @@ def test_restored_estimator_continues_exactly(name):
         resumed = SessionEstimator.from_dict(json.loads(json.dumps(resumed.to_dict())))
         got += feed(resumed, items[k:k + 4])
     assert got == expected
-    assert expected[-1]["x"] == pytest.approx(0.7 * 30, abs=3.0)
+    assert expected[-1].x == pytest.approx(0.7 * 30, abs=3.0)
 
 
 def test_steps_before_the_first_fix_are_dropped_and_the_first_scan_starts():
     est = SessionEstimator("kf", seed=1)
     assert est.step(Step(0.0, 0.7, 0.0)) is None and est.estimate is None
-    e = est.scan(Scan(1.0, {"wifi:a": -50.0}), Fix(3.0, 4.0, 2, np.eye(2)), {}, lambda level: [])
-    assert e["source"] == "scan" and (e["x"], e["y"], e["floor"]) == (3.0, 4.0, 2)
+    e, _ = est.scan(Scan(1.0, {"wifi:a": -50.0}), Fix(3.0, 4.0, 2, np.eye(2)), EMPTY)
+    assert e.source == "scan" and (e.x, e.y, e.floor) == (3.0, 4.0, 2)
 
 
 def test_floor_change_needs_three_fixes_and_loads_the_new_walls():
     est = SessionEstimator("pf", seed=1)
     est.start([0.0, 0.0], None, 0, [], None, "init")
-    walls_asked = []
-
-    def walls_of(level):
-        walls_asked.append(level)
-        return [[-1.0, 5.0, 1.0, 5.0]]
-
+    site = SiteMap(walls={0: [], 1: [[-1.0, 5.0, 1.0, 5.0]]})
+    floors = []
     for i in range(3):
-        e = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), {}, walls_of)
-    assert e["floor"] == 1 and walls_asked == [1]
+        e, _ = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), site)
+        floors.append(e.floor)
+    assert floors == [0, 0, 1]
     assert est.tracker.walls.tolist() == [[-1.0, 5.0, 1.0, 5.0]]
 
 
@@ -87,12 +88,12 @@ def test_landmark_snap_moves_onto_the_beacon():
     est = SessionEstimator("kf", seed=1)
     est.start([20.0, 20.0], None, 0, [], None, "init")
     far = Fix(20.0, 20.0, 0, np.eye(2) * 100.0)
-    e = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, BEACONS, lambda level: [])
-    assert (e["x"], e["y"]) == pytest.approx((5.0, 0.0))
+    e, _ = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, SITE)
+    assert (e.x, e.y) == pytest.approx((5.0, 0.0))
 
 
-def _scan_at(est: SessionEstimator, t: float, x: float, y: float) -> dict:
-    return est.scan(Scan(t, {"wifi:a": -60.0}), Fix(x, y, 0, np.eye(2) * 1.0), {}, lambda level: [])
+def _scan_at(est: SessionEstimator, t: float, x: float, y: float) -> tuple[Estimate, str | None]:
+    return est.scan(Scan(t, {"wifi:a": -60.0}), Fix(x, y, 0, np.eye(2) * 1.0), EMPTY)
 
 
 @pytest.mark.parametrize("name", tracker_names())
@@ -100,11 +101,11 @@ def test_an_outlier_fix_is_refused_and_moves_nothing(name):
     est = SessionEstimator(name, seed=3)
     est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
     before = (est.tracker.mean[0], est.tracker.mean[1])
-    e = _scan_at(est, 1.0, 40.0, 0.0)
-    assert est.rejected is not None and "40.0 m" in est.rejected
-    assert (e["x"], e["y"]) == pytest.approx(before)
-    e = _scan_at(est, 2.0, 2.0, 0.0)  # a plausible fix is used again
-    assert est.rejected is None and e["x"] > before[0] + 0.3 and est.gated_in_a_row == 0
+    e, refused = _scan_at(est, 1.0, 40.0, 0.0)
+    assert refused is not None and "40.0 m" in refused
+    assert (e.x, e.y) == pytest.approx(before)
+    e, refused = _scan_at(est, 2.0, 2.0, 0.0)  # a plausible fix is used again
+    assert refused is None and e.x > before[0] + 0.3 and est.gated_in_a_row == 0
 
 
 def test_after_a_run_of_refused_fixes_the_next_one_is_used():
@@ -116,11 +117,11 @@ def test_after_a_run_of_refused_fixes_the_next_one_is_used():
     est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
     for k in range(MAX_GATED_IN_A_ROW):
         est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
-        _scan_at(est, float(k), 30.0, 30.0)
-        assert est.rejected is not None and est.gated_in_a_row == k + 1
-    e = _scan_at(est, 9.0, 30.0, 30.0)  # P = R = 1 m²: the update goes half way
-    assert est.rejected is None and est.gated_in_a_row == 0
-    assert (e["x"], e["y"]) == pytest.approx((15.0, 15.0), abs=0.5)
+        _, refused = _scan_at(est, float(k), 30.0, 30.0)
+        assert refused is not None and est.gated_in_a_row == k + 1
+    e, refused = _scan_at(est, 9.0, 30.0, 30.0)  # P = R = 1 m²: the update goes half way
+    assert refused is None and est.gated_in_a_row == 0
+    assert (e.x, e.y) == pytest.approx((15.0, 15.0), abs=0.5)
 
 
 def test_time_order_is_stable_with_steps_first_at_equal_times():

@@ -11,14 +11,16 @@ from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
     apply_snap,
+    find_merge_target,
     gate,
     make_crowd_point,
     make_tracker,
-    merge_crowd_point,
+    merge_points,
     range_and_std,
     range_from_rss,
 )
 from server.estimation.tracking.landmarks import ScalarKalman, TukeyFilter
+from server.estimation.types import CrowdPoint
 
 BEACON = "ble:b1"
 
@@ -104,18 +106,21 @@ def test_crowd_merge_within_1m_else_insert():
     stored = [make_crowd_point(0.0, 0.0, 0, {"a": -60.0}), make_crowd_point(10.0, 0.0, 0, {"a": -80.0})]
     before = copy.deepcopy(stored)
     new = make_crowd_point(0.5, 0.5, 0, {"a": -70.0, "b": -80.0})  # 0.71 m from the first
-    out, i, inserted = merge_crowd_point(stored, new)
-    assert (i, inserted, len(out)) == (0, False, 2)
-    p = out[0]
-    assert (p["x"], p["y"], p["count"]) == (0.25, 0.25, 2)
-    assert p["rss"] == {"a": -65.0, "b": -80.0} and p["counts"] == {"a": 2, "b": 1}
+    assert find_merge_target(stored, new) == 0
+    p = merge_points(stored[0], new)
+    assert (p.x, p.y, p.count) == (0.25, 0.25, 2)
+    assert p.rss == {"a": -65.0, "b": -80.0} and p.counts == {"a": 2, "b": 1}
     assert stored == before  # pure
-    out2, i2, _ = merge_crowd_point(out, make_crowd_point(0.25, 0.25, 0, {"a": -62.0}))
-    assert out2[0]["rss"]["a"] == pytest.approx((-65.0 * 2 - 62.0) / 3) and out2[0]["counts"]["a"] == 3
-    out3, i3, inserted3 = merge_crowd_point(out, make_crowd_point(1.5, 0.0, 0, {"a": -60.0}))
-    assert inserted3 and len(out3) == 3 and i3 == 2
-    out4, _, inserted4 = merge_crowd_point(out, make_crowd_point(0.0, 0.0, 1, {"a": -60.0}))
-    assert inserted4  # same spot, other floor
+    p2 = merge_points(p, make_crowd_point(0.25, 0.25, 0, {"a": -62.0}))
+    assert p2.rss["a"] == pytest.approx((-65.0 * 2 - 62.0) / 3) and p2.counts["a"] == 3
+    assert find_merge_target([p, stored[1]], make_crowd_point(1.5, 0.0, 0, {"a": -60.0})) is None
+    assert find_merge_target([p, stored[1]], make_crowd_point(0.0, 0.0, 1, {"a": -60.0})) is None  # other floor
+
+
+def test_a_stored_point_without_reading_counts_weighs_each_reading_by_its_point_count():
+    stored = CrowdPoint(0.0, 0.0, 0, {"a": -60.0}, count=3)  # as read back from the database
+    p = merge_points(stored, make_crowd_point(0.0, 0.0, 0, {"a": -80.0}))
+    assert p.rss["a"] == pytest.approx(-65.0) and p.count == 4
 
 
 def test_path_loss_range():

@@ -13,7 +13,7 @@ set_walls(walls), search_region(), to_dict(), from_dict().
 
 from server.estimation.radio import range_and_std, range_from_rss  # canonical home: server.estimation.radio
 from server.estimation.tracking.base import TRACKERS, Tracker, make_tracker, tracker_from_dict, tracker_names
-from server.estimation.tracking.crowd import gate, make_crowd_point, merge_crowd_point, merge_points
+from server.estimation.tracking.crowd import find_merge_target, gate, make_crowd_point, merge_points
 from server.estimation.tracking.ekf import EKFTracker
 from server.estimation.tracking.fkf import FuzzyKFTracker
 from server.estimation.tracking.floors import FloorTracker
@@ -41,7 +41,7 @@ __all__ = [
     "apply_snap",
     "gate",
     "make_crowd_point",
-    "merge_crowd_point",
+    "find_merge_target",
     "merge_points",
     "range_from_rss",
     "range_and_std",

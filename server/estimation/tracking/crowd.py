@@ -1,14 +1,11 @@
-"""Crowdsourcing rules, pure functions on plain data (the server does the storage).
+"""Crowdsourcing rules, pure functions (the server does the storage).
 
-A crowd point is a plain dict::
-
-    {"x": float, "y": float, "floor": int, "count": int,
-     "rss": {tx_id: mean dBm}, "counts": {tx_id: number of readings in the mean}}
+A crowd point is a ``CrowdPoint`` (``server.estimation.types``).
 
 Gating (``gate``) keeps a drifting session from poisoning the map: the tracker's
 estimate must be tight (covariance trace small) and agree with the fingerprint
 model's fix for the same scan (distance small), and the scan must hear enough
-transmitters. Merging (``merge_crowd_point``): a new point within 1 m of a stored
+transmitters. Merging (``find_merge_target``, ``merge_points``): a new point within 1 m of a stored
 point on the same floor is averaged into the nearest one (position weighted by point
 counts, RSS as a running mean per transmitter with its own count); otherwise it is
 inserted.
@@ -17,10 +14,12 @@ inserted.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
+
+from server.estimation.types import CrowdPoint
 
 
 @dataclass(frozen=True)
@@ -54,62 +53,35 @@ def gate(
     return GateDecision(True, "ok")
 
 
-def make_crowd_point(x: float, y: float, floor: int, rss: dict[str, float]) -> dict[str, Any]:
-    return {
-        "x": float(x),
-        "y": float(y),
-        "floor": int(floor),
-        "count": 1,
-        "rss": {k: float(v) for k, v in rss.items()},
-        "counts": dict.fromkeys(rss, 1),
-    }
+def make_crowd_point(x: float, y: float, floor: int, rss: dict[str, float]) -> CrowdPoint:
+    return CrowdPoint(float(x), float(y), int(floor), {k: float(v) for k, v in rss.items()}, 1, dict.fromkeys(rss, 1))
 
 
-def _counts(p: dict[str, Any]) -> dict[str, int]:
-    return p.get("counts") or {k: int(p.get("count", 1)) for k in p["rss"]}
-
-
-def merge_points(stored: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
-    """Average ``new`` into ``stored`` (returns a new dict; inputs are not changed)."""
-    n1, n2 = int(stored.get("count", 1)), int(new.get("count", 1))
-    c1, c2 = _counts(stored), _counts(new)
+def merge_points(stored: CrowdPoint, new: CrowdPoint) -> CrowdPoint:
+    """``new`` averaged into ``stored``: position weighted by point counts, RSS by reading counts."""
+    n1, n2 = stored.count, new.count
+    c1, c2 = stored.tx_counts(), new.tx_counts()
     rss: dict[str, float] = {}
     counts: dict[str, int] = {}
-    for tx in set(stored["rss"]) | set(new["rss"]):
-        a, b = c1.get(tx, 0) if tx in stored["rss"] else 0, c2.get(tx, 0) if tx in new["rss"] else 0
-        total = a + b
-        rss[tx] = ((stored["rss"].get(tx, 0.0) * a) + (new["rss"].get(tx, 0.0) * b)) / total
-        counts[tx] = total
-    return {
-        **stored,
-        "x": (stored["x"] * n1 + new["x"] * n2) / (n1 + n2),
-        "y": (stored["y"] * n1 + new["y"] * n2) / (n1 + n2),
-        "count": n1 + n2,
-        "rss": rss,
-        "counts": counts,
-    }
+    for tx in set(stored.rss) | set(new.rss):
+        a, b = c1.get(tx, 0) if tx in stored.rss else 0, c2.get(tx, 0) if tx in new.rss else 0
+        counts[tx] = a + b
+        rss[tx] = (stored.rss.get(tx, 0.0) * a + new.rss.get(tx, 0.0) * b) / (a + b)
+    return CrowdPoint(
+        x=(stored.x * n1 + new.x * n2) / (n1 + n2),
+        y=(stored.y * n1 + new.y * n2) / (n1 + n2),
+        floor=stored.floor, rss=rss, count=n1 + n2, counts=counts,
+    )
 
 
-def find_merge_target(stored: list[dict[str, Any]], new: dict[str, Any], radius_m: float = 1.0) -> int | None:
+def find_merge_target(stored: Sequence[CrowdPoint], new: CrowdPoint, radius_m: float = 1.0) -> int | None:
     """Index of the nearest stored point on the same floor within ``radius_m``, or None."""
     best, best_d = None, float("inf")
     for i, p in enumerate(stored):
-        if int(p["floor"]) != int(new["floor"]):
+        if p.floor != new.floor:
             continue
-        d = math.hypot(p["x"] - new["x"], p["y"] - new["y"])
+        d = math.hypot(p.x - new.x, p.y - new.y)
         if d <= radius_m and d < best_d:
             best, best_d = i, d
     return best
 
-
-def merge_crowd_point(
-    stored: list[dict[str, Any]], new: dict[str, Any], radius_m: float = 1.0
-) -> tuple[list[dict[str, Any]], int, bool]:
-    """Returns (new list, index of the merged-or-inserted point, inserted?)."""
-    out = list(stored)
-    i = find_merge_target(stored, new, radius_m)
-    if i is None:
-        out.append(dict(new))
-        return out, len(out) - 1, True
-    out[i] = merge_points(stored[i], new)
-    return out, i, False

@@ -1,0 +1,224 @@
+"""Tracking sessions, their stored batch answers and their tracks; crowd fingerprints a batch adds.
+
+The per-batch path (``feed_state``, ``batch_answer``, ``save_batch`` and the crowd
+statements) takes a Core ``Connection`` and runs statements built once at import: a batch
+is the service's hottest request, and the ORM's per-statement work was most of its cost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from datetime import UTC, datetime
+
+from sqlalchemy import Connection, bindparam, insert, select, update
+from sqlalchemy.orm import Session
+
+from server.domain import BatchAnswer, FeedState, SessionInfo
+from server.estimation.types import CrowdPoint, Estimate
+from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession
+
+_SESSIONS, _SITES = TrackingSession.__table__, Site.__table__
+_BATCHES, _ESTIMATES = SessionBatch.__table__, TrackEstimate.__table__
+_FINGERPRINTS = Fingerprint.__table__
+
+_FEED_STATE = (
+    select(
+        _SESSIONS.c.site_id, _SESSIONS.c.owner_key, _SESSIONS.c.model_id, _SESSIONS.c.status, _SESSIONS.c.state,
+        _SESSIONS.c.last_seq, _SESSIONS.c.track_length, _SITES.c.revision.label("site_revision"),
+    )
+    .join(_SITES, _SITES.c.id == _SESSIONS.c.site_id)
+    .where(_SESSIONS.c.id == bindparam("session_id"))
+)
+_STORED_ANSWER = select(_BATCHES.c.answer).where(
+    _BATCHES.c.session_id == bindparam("session_id"), _BATCHES.c.seq == bindparam("seq")
+)
+_CLAIM_SEQ = (
+    update(_SESSIONS)
+    .where(
+        _SESSIONS.c.id == bindparam("sid"),
+        _SESSIONS.c.last_seq == bindparam("expected_seq"),
+        _SESSIONS.c.status == "open",
+    )
+    .values(state=bindparam("new_state"), last_seq=bindparam("new_seq"), track_length=bindparam("new_length"))
+)
+_INSERT_ANSWER = insert(_BATCHES)
+_INSERT_ESTIMATES = insert(_ESTIMATES)
+_DATE_INITIAL = (
+    update(_ESTIMATES)
+    .where(_ESTIMATES.c.session_id == bindparam("sid"), _ESTIMATES.c.idx == 0, _ESTIMATES.c.t.is_(None))
+    .values(t=bindparam("init_t"))
+)
+_NEARBY_CROWD = (
+    select(_FINGERPRINTS.c.id, _FINGERPRINTS.c.x, _FINGERPRINTS.c.y, _FINGERPRINTS.c.floor, _FINGERPRINTS.c.rss,
+           _FINGERPRINTS.c.samples)
+    .where(
+        _FINGERPRINTS.c.site_id == bindparam("site_id"),
+        _FINGERPRINTS.c.source == "crowd",
+        _FINGERPRINTS.c.floor == bindparam("floor"),
+        _FINGERPRINTS.c.x.between(bindparam("x0"), bindparam("x1")),
+        _FINGERPRINTS.c.y.between(bindparam("y0"), bindparam("y1")),
+    )
+    .order_by(_FINGERPRINTS.c.id)
+    .with_for_update()
+)
+_INSERT_CROWD = insert(_FINGERPRINTS)
+_UPDATE_CROWD = (
+    update(_FINGERPRINTS)
+    .where(_FINGERPRINTS.c.id == bindparam("fid"))
+    .values(x=bindparam("new_x"), y=bindparam("new_y"), rss=bindparam("new_rss"), samples=bindparam("new_samples"))
+)
+
+
+def _info(row: TrackingSession) -> SessionInfo:
+    stored = (row.state or {}).get("estimate")
+    return SessionInfo(
+        id=row.id, site_id=row.site_id, owner_key=row.owner_key, filter=row.filter, model_id=row.model_id,
+        status=row.status, estimate=None if stored is None else Estimate.from_dict(stored),
+        created_at=row.created_at, last_seq=row.last_seq, track_length=row.track_length,
+    )
+
+
+def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: Sequence[Estimate]) -> list[dict]:
+    return [
+        {"session_id": session_id, "idx": first_idx + i, "seq": seq, "t": e.t, "x": e.x, "y": e.y, "floor": e.floor,
+         "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
+        for i, e in enumerate(estimates)
+    ]
+
+
+# --- open, read, close ------------------------------------------------------------------------
+
+
+def add_session(
+    s: Session, session_id: str, site_id: int, owner_key: str, filter: str, model_id: int | None,
+    state: dict, estimates: Sequence[Estimate],
+) -> SessionInfo:
+    """A new open session; ``estimates`` (the initial position, if given) start its track."""
+    row = TrackingSession(
+        id=session_id, site_id=site_id, owner_key=owner_key, filter=filter, model_id=model_id,
+        status="open", state=state, last_seq=-1, track_length=len(estimates),
+    )
+    s.add(row)
+    s.flush()
+    if estimates:
+        s.execute(_INSERT_ESTIMATES, _estimate_rows(session_id, 0, None, estimates))
+    return _info(row)
+
+
+def list_sessions(
+    s: Session, owner_key: str | None, site_id: int | None, status: str | None, limit: int
+) -> list[SessionInfo]:
+    """Newest first; ``owner_key`` None lists every owner's."""
+    query = select(TrackingSession).order_by(TrackingSession.created_at.desc(), TrackingSession.id).limit(limit)
+    if owner_key is not None:
+        query = query.where(TrackingSession.owner_key == owner_key)
+    if site_id is not None:
+        query = query.where(TrackingSession.site_id == site_id)
+    if status is not None:
+        query = query.where(TrackingSession.status == status)
+    return [_info(row) for row in s.scalars(query)]
+
+
+def get_session(s: Session, session_id: str) -> SessionInfo | None:
+    row = s.scalar(
+        select(TrackingSession).where(TrackingSession.id == session_id).execution_options(populate_existing=True)
+    )
+    return None if row is None else _info(row)
+
+
+def track(s: Session, session_id: str) -> list[Estimate]:
+    rows = s.execute(
+        select(_ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance,
+               _ESTIMATES.c.source)
+        .where(_ESTIMATES.c.session_id == session_id)
+        .order_by(_ESTIMATES.c.idx)
+    )
+    return [Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source) for t, x, y, floor, c, source in rows]
+
+
+def close_session(s: Session, session_id: str) -> bool:
+    """Close an open session; False when it was already closed."""
+    result = s.execute(
+        update(TrackingSession)
+        .where(TrackingSession.id == session_id, TrackingSession.status == "open")
+        .values(status="closed", closed_at=datetime.now(UTC))
+        .execution_options(synchronize_session=False)
+    )
+    return result.rowcount == 1
+
+
+# --- the per-batch path ---------------------------------------------------------------------
+
+
+def feed_state(conn: Connection, session_id: str) -> FeedState | None:
+    """The session's row with its site's revision, or None. A plain read (no lock):
+    ``save_batch`` checks that nothing changed since."""
+    row = conn.execute(_FEED_STATE, {"session_id": session_id}).first()
+    return None if row is None else FeedState(*row)
+
+
+def batch_answer(conn: Connection, session_id: str, seq: int) -> BatchAnswer | None:
+    stored = conn.execute(_STORED_ANSWER, {"session_id": session_id, "seq": seq}).scalar()
+    return None if stored is None else BatchAnswer.from_dict(stored)
+
+
+def save_batch(
+    conn: Connection,
+    session_id: str,
+    *,
+    expected_last_seq: int,
+    state: dict,
+    answer: BatchAnswer,
+    first_idx: int,
+    estimates: Sequence[Estimate],
+    init_t: float | None = None,
+) -> bool:
+    """Compare-and-set: store the batch's outcome only if the session is still open at ``expected_last_seq``.
+
+    The UPDATE comes first, so it takes the row lock (PostgreSQL) or the write lock
+    (SQLite) before anything else is written; a concurrent feeder of the same session
+    finds ``last_seq`` moved and gets ``False`` (nothing written; it re-reads and retries).
+    """
+    claimed = conn.execute(_CLAIM_SEQ, {
+        "sid": session_id, "expected_seq": expected_last_seq, "new_state": state, "new_seq": answer.seq,
+        "new_length": first_idx + len(estimates),
+    })
+    if claimed.rowcount != 1:
+        return False
+    conn.execute(_INSERT_ANSWER, [{"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict()}])
+    if estimates:
+        conn.execute(_INSERT_ESTIMATES, _estimate_rows(session_id, first_idx, answer.seq, estimates))
+    if init_t is not None:  # the initial estimate takes the time of the session's first input
+        conn.execute(_DATE_INITIAL, {"sid": session_id, "init_t": init_t})
+    return True
+
+
+# --- crowd fingerprints (written in the batch's transaction) -------------------------------
+
+
+def nearby_crowd_points(
+    conn: Connection, site_id: int, floor: int, x: float, y: float, radius_m: float
+) -> list[tuple[int, CrowdPoint]]:
+    """(id, point) of the crowd fingerprints of a floor in the box of ±radius around (x, y),
+    locked for the merge. A stored point keeps its merged count, not per-transmitter counts."""
+    rows = conn.execute(_NEARBY_CROWD, {
+        "site_id": site_id, "floor": floor, "x0": x - radius_m, "x1": x + radius_m, "y0": y - radius_m,
+        "y1": y + radius_m,
+    })
+    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in rows]
+
+
+def add_crowd_fingerprint(
+    conn: Connection, site_id: int, point: CrowdPoint, heading_deg: float | None, t: float | None
+) -> None:
+    conn.execute(_INSERT_CROWD, [{
+        "site_id": site_id, "source": "crowd", "floor": point.floor, "x": point.x, "y": point.y,
+        "heading_deg": None if heading_deg is None else heading_deg % 360.0, "t": t, "device": None,
+        "rss": point.rss, "samples": point.count,
+    }])
+
+
+def update_crowd_fingerprint(conn: Connection, fingerprint_id: int, point: CrowdPoint) -> None:
+    conn.execute(_UPDATE_CROWD, {
+        "fid": fingerprint_id, "new_x": point.x, "new_y": point.y, "new_rss": point.rss, "new_samples": point.count,
+    })
