@@ -18,11 +18,10 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from server.errors import Invalid, TooLarge, UnsupportedMedia
+from server.estimation.fingerprint.ujiindoorloc import UjiFormatError, UjiRecord, parse_ujiindoorloc
 from server.schemas import TX_ID_PATTERN, FingerprintIn
 
 CSV_FIELDS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
-UJI_NOT_HEARD = "100"
-UJI_FIELDS = ("LONGITUDE", "LATITUDE", "FLOOR", "USERID", "PHONEID", "TIMESTAMP")
 MAX_REPORTED_ERRORS = 100
 TX_ID_HELP = "wifi:<bssid>, wifi:<name>, ble:<uuid>:<major>:<minor> or ble:<name>, lower case"
 
@@ -110,32 +109,22 @@ def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]]]:
 
 
 def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], int]:
-    reader = csv.reader(io.StringIO(text))
-    header = [h.strip() for h in next(reader, [])]
-    index = {h: i for i, h in enumerate(header)}
-    missing = [f for f in UJI_FIELDS[:3] if f not in index]
-    if missing:
-        raise invalid_rows([_error(None, "header", f"missing UJIIndoorLoc column(s) {', '.join(missing)}", line=1)])
-    waps = [(i, "wifi:" + h.lower()) for i, h in enumerate(header) if h.upper().startswith("WAP")]
-    x, y, floor = index["LONGITUDE"], index["LATITUDE"], index["FLOOR"]
-    user, phone, stamp = index.get("USERID"), index.get("PHONEID"), index.get("TIMESTAMP")
-    rows, positions, skipped = [], [], 0
-    for data_row, cells in enumerate(reader):
-        if not cells:
-            continue
-        _check_width(cells, header, data_row, reader.line_num)
-        rss = {tx: cells[i] for i, tx in waps if cells[i] != UJI_NOT_HEARD}
-        if not rss:
-            skipped += 1
-            continue
-        row: dict[str, Any] = {"x": cells[x], "y": cells[y], "floor": cells[floor], "rss": rss}
-        if user is not None and phone is not None:
-            row["device"] = f"user{cells[user]}-phone{cells[phone]}"
-        if stamp is not None:
-            row["t"] = cells[stamp]
-        rows.append(row)
-        positions.append((data_row, reader.line_num))
-    return rows, positions, skipped
+    """UJIIndoorLoc CSV through the shared parser, as rows for the common validation."""
+    try:
+        survey = parse_ujiindoorloc(io.StringIO(text))
+    except UjiFormatError as exc:
+        raise invalid_rows([_error(exc.row, exc.field, str(exc), line=exc.line)]) from None
+    rows = [_uji_row(r) for r in survey.records]
+    return rows, [(r.row, r.line) for r in survey.records], survey.skipped
+
+
+def _uji_row(record: UjiRecord) -> dict[str, Any]:
+    row: dict[str, Any] = {"x": record.x, "y": record.y, "floor": record.floor, "rss": record.rss}
+    if record.device is not None:
+        row["device"] = record.device
+    if record.timestamp is not None:
+        row["t"] = record.timestamp
+    return row
 
 
 def _check_width(cells: list[str], header: list[str], data_row: int, line: int) -> None:

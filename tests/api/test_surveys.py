@@ -120,7 +120,7 @@ def test_bad_json_rows_are_422_naming_row_and_field(admin, site, snapshot, body,
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])
 def test_nan_and_infinity_are_rejected(admin, site, snapshot, literal):
     before = snapshot()
-    raw = '{"fingerprints": [{"x": 1, "y": 2, "floor": 0, "rss": {"wifi:ap1": %s}}]}' % literal
+    raw = '{"fingerprints": [{"x": 1, "y": 2, "floor": 0, "rss": {"wifi:ap1": ' + literal + "}}]}"
     answer = admin.post(surveys_url(site), content=raw, headers={"Content-Type": "application/json"})
     assert answer.status_code == 422
     assert answer.json()["detail"][0]["field"] == "rss.wifi:ap1"
@@ -148,6 +148,19 @@ def test_csv_errors_name_row_line_and_column(admin, site, snapshot):
     assert "floor" in no_floor.json()["detail"][0]["msg"]
     ragged = admin.post(surveys_url(site), content="x,y,floor,wifi:a\n1,2,0\n", headers={"Content-Type": "text/csv"})
     assert ragged.status_code == 422 and ragged.json()["detail"][0]["line"] == 2
+    assert snapshot() == before
+
+
+def test_ujiindoorloc_errors_name_row_line_and_column(admin, site, snapshot):
+    before = snapshot()
+    head = "WAP001,LONGITUDE,LATITUDE,FLOOR,PHONEID\n"
+    url = surveys_url(site) + "?format=ujiindoorloc"
+    bad_cell = admin.post(url, content=head + "-50,1,2,0,13\n-60,east,2,0,13\n", headers={"Content-Type": "text/csv"})
+    assert bad_cell.status_code == 422
+    (error,) = bad_cell.json()["detail"]
+    assert (error["row"], error["line"], error["field"]) == (1, 3, "LONGITUDE")
+    no_floor = admin.post(url, content="WAP001,LONGITUDE,LATITUDE\n-50,1,2\n", headers={"Content-Type": "text/csv"})
+    assert no_floor.status_code == 422 and "FLOOR" in no_floor.json()["detail"][0]["msg"]
     assert snapshot() == before
 
 

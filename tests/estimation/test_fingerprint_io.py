@@ -1,5 +1,7 @@
 """Artifacts (round trip, checksum refusal), loaders, evaluate CLI."""
 
+import io
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from server.estimation.fingerprint.loaders import (
     write_survey_csv,
 )
 from server.estimation.fingerprint.synthetic import make_site
+from server.estimation.fingerprint.ujiindoorloc import UjiFormatError, parse_ujiindoorloc
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +85,22 @@ def test_read_ujiindoorloc_skips_silent_rows(tmp_path):
     assert fs.tx_ids == ["wifi:wap001", "wifi:wap002", "wifi:wap003"]
     assert np.isnan(fs.rss[0, 1]) and fs.rss[0, 0] == -60
     assert list(fs.building) == [0, 1] and list(fs.floor) == [1, 2]
-    assert list(fs.device) == [13, 14] and fs.x[0] == -7600.5
+    assert list(fs.device) == ["phone-13", "phone-14"] and list(fs.user) == [3, 4] and fs.x[0] == -7600.5
+
+
+def test_ujiindoorloc_parser_keeps_every_column_and_locates_errors():
+    text = "WAP001,WAP002,LONGITUDE,LATITUDE,FLOOR,BUILDINGID,USERID,PHONEID,TIMESTAMP\n" \
+           "-60,100,1.5,2.5,3,2,7,13,1371710000\n\n100,100,0,0,0,0,7,13,1\n-70,-80,1,2,0,1,8,14,2\n"
+    survey = parse_ujiindoorloc(io.StringIO(text))
+    assert survey.tx_ids == ["wifi:wap001", "wifi:wap002"] and survey.skipped == 1
+    first, last = survey.records
+    assert (first.x, first.y, first.floor, first.building, first.user, first.phone, first.timestamp) == (
+        1.5, 2.5, 3, 2, 7, 13, 1371710000)
+    assert first.rss == {"wifi:wap001": -60.0} and first.device == "phone-13"
+    assert (last.row, last.line) == (3, 5)
+    with pytest.raises(UjiFormatError) as bad:
+        parse_ujiindoorloc(io.StringIO(text.replace("-70,-80,1,", "-70,-80,north,")))
+    assert (bad.value.row, bad.value.line, bad.value.field) == (3, 5, "LONGITUDE")
 
 
 def test_read_uji_ble(tmp_path):
@@ -94,7 +112,7 @@ def test_read_uji_ble(tmp_path):
     (tmp_path / "dep" / "lib.csv").write_text("id,x,y\n23,0.5,0.5\n24,5.0,5.0\n")
     fs = read_uji_ble(tmp_path)
     assert fs.tx_ids == ["ble:lib23", "ble:lib24"] and len(fs) == 2 and fs.meta["skipped"] == 1
-    assert list(fs.device) == [1, 2] and list(fs.user) == [2, 3]
+    assert list(fs.device) == ["phone-1", "phone-2"] and list(fs.user) == [2, 3]
     assert len(fs.reference_points()) == 2  # grouped by position
 
 

@@ -12,9 +12,9 @@ import os
 import numpy as np
 
 from .dataset import FingerprintSet
+from .ujiindoorloc import NOT_HEARD_DBM, device_name, parse_ujiindoorloc
 
 SURVEY_COLUMNS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
-UJI_NOT_HEARD = 100.0
 
 
 def read_survey_csv(source) -> FingerprintSet:
@@ -65,31 +65,28 @@ def write_survey_csv(fs: FingerprintSet, path) -> None:
 
 
 def read_ujiindoorloc(path) -> FingerprintSet:
-    """UJIIndoorLoc CSV (WAP001..WAP520, 100 = not heard, LONGITUDE/LATITUDE as metres,
-    FLOOR, BUILDINGID, ..., USERID, PHONEID, TIMESTAMP). Rows that hear nothing are
-    skipped; their count is in ``meta["skipped"]``. Reference points are grouped by
-    (building, floor, x, y); user = USERID, device = PHONEID."""
-    with open(path, newline="") as f:
-        header = next(csv.reader(f))
-    header = [h.strip().strip('"') for h in header]
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    wap = [j for j, h in enumerate(header) if h.upper().startswith("WAP")]
-    col = {h.upper(): j for j, h in enumerate(header)}
-    rss = data[:, wap]
-    rss = np.where(rss == UJI_NOT_HEARD, np.nan, rss)
-    keep = ~np.all(np.isnan(rss), axis=1)
-    d = data[keep]
+    """UJIIndoorLoc CSV (parsed by ``ujiindoorloc``). Rows that hear nothing are skipped;
+    their count is in ``meta["skipped"]``. Reference points are grouped by (building,
+    floor, x, y); user = USERID, device = ``phone-<PHONEID>``."""
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        survey = parse_ujiindoorloc(f)
+    recs = survey.records
+    col = {t: j for j, t in enumerate(survey.tx_ids)}
+    rss = np.full((len(recs), len(col)), np.nan)
+    for i, r in enumerate(recs):
+        for t, v in r.rss.items():
+            rss[i, col[t]] = v
+
+    def column(values: list):
+        return None if not values or any(v is None for v in values) else np.array(values)
+
     fs = FingerprintSet(
-        rss=rss[keep],
-        tx_ids=["wifi:" + header[j].lower() for j in wap],
-        x=d[:, col["LONGITUDE"]], y=d[:, col["LATITUDE"]],
-        floor=d[:, col["FLOOR"]].astype(int),
-        building=d[:, col["BUILDINGID"]].astype(int) if "BUILDINGID" in col else None,
-        user=d[:, col["USERID"]].astype(int) if "USERID" in col else None,
-        device=d[:, col["PHONEID"]].astype(int) if "PHONEID" in col else None,
-        t=d[:, col["TIMESTAMP"]] if "TIMESTAMP" in col else None,
+        rss=rss, tx_ids=survey.tx_ids,
+        x=np.array([r.x for r in recs]), y=np.array([r.y for r in recs]), floor=np.array([r.floor for r in recs], int),
+        building=column([r.building for r in recs]), user=column([r.user for r in recs]),
+        device=column([r.device for r in recs]), t=column([r.timestamp for r in recs]),
     )
-    fs.meta["skipped"] = int((~keep).sum())
+    fs.meta["skipped"] = survey.skipped
     return fs
 
 
@@ -103,7 +100,7 @@ def read_uji_ble(directory) -> FingerprintSet:
     campaign·10⁵ + point·100 + sample). Beacon columns are ``ble:lib<id>`` with ids from
     dep/lib.csv in order (23..46) when present. One floor (0). No label: point numbers
     are per campaign (point 1 of campaign 2 and of campaign 3 are different places), so
-    reference points are grouped by position; device = phone; user = campaign. Rows
+    reference points are grouped by position; device = ``phone-<phone>``; user = campaign. Rows
     that hear nothing are skipped."""
     rss = _read_matrix(os.path.join(directory, "rss", "lib_rss.csv"))
     crd = _read_matrix(os.path.join(directory, "rss", "lib_crd.csv"))
@@ -112,28 +109,34 @@ def read_uji_ble(directory) -> FingerprintSet:
     names = [b["id"] for b in beacons] if len(beacons) == rss.shape[1] else [
         f"ble:lib{j + 1:02d}" for j in range(rss.shape[1])
     ]
-    rss = np.where(rss == UJI_NOT_HEARD, np.nan, rss)
+    rss = np.where(rss == NOT_HEARD_DBM, np.nan, rss)
     keep = ~np.all(np.isnan(rss), axis=1)
     phone = ids // 10**7
     campaign = ids // 10**5 % 10
     fs = FingerprintSet(
         rss=rss[keep], tx_ids=names, x=crd[keep, 0], y=crd[keep, 1], floor=np.zeros(keep.sum(), int),
-        user=campaign[keep], device=phone[keep],
+        user=campaign[keep], device=np.array([device_name(int(p)) for p in phone[keep]], dtype=object),
     )
     fs.meta["skipped"] = int((~keep).sum())
     return fs
 
 
 def read_uji_ble_beacons(directory) -> list[dict]:
-    """dep/lib.csv → transmitter dicts ``{id, kind, floor, x, y}`` (API Transmitter)."""
+    """dep/lib.csv → transmitter dicts ``{id, kind, floor, x, y}`` (API Transmitter);
+    id ``ble:lib<id>``, a numeric id zero-padded to two digits."""
     path = os.path.join(directory, "dep", "lib.csv")
     if not os.path.exists(path):
         return []
     with open(path, newline="") as f:
         return [
-            {"id": f"ble:lib{int(r['id']):02d}", "kind": "ble", "floor": 0, "x": float(r["x"]), "y": float(r["y"])}
+            {"id": _beacon_id(r["id"]), "kind": "ble", "floor": 0, "x": float(r["x"]), "y": float(r["y"])}
             for r in csv.DictReader(f)
         ]
+
+
+def _beacon_id(raw: str) -> str:
+    raw = raw.strip()
+    return f"ble:lib{int(raw):02d}" if raw.isdigit() else f"ble:lib{raw.lower()}"
 
 
 def load(path, fmt: str = "csv") -> FingerprintSet:
