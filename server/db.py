@@ -6,11 +6,13 @@ import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
+from types import ModuleType
 
 import orjson
 from sqlalchemy import Connection, Engine, create_engine, event, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
+fcntl: ModuleType | None
 try:
     import fcntl
 except ImportError:  # not on Windows: processes then meet in SQLite's own busy handler
@@ -61,7 +63,7 @@ class SqliteWriteLock:
     def __enter__(self) -> None:
         self._threads.acquire()
         try:
-            if self._path is not None:
+            if self._path is not None and fcntl is not None:
                 if self._fd is None:  # opened on first use: read-only users never create the file
                     self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o644)
                 fcntl.flock(self._fd, fcntl.LOCK_EX)
@@ -70,7 +72,7 @@ class SqliteWriteLock:
             raise
 
     def __exit__(self, *_exc) -> None:
-        if self._fd is not None:
+        if self._fd is not None and fcntl is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
         self._threads.release()
 

@@ -42,5 +42,5 @@ def rng_from_state(state: dict[str, Any]) -> np.random.Generator:
     if name != "PCG64":
         raise ValueError(f"unsupported bit generator {name!r}")
     bg = np.random.PCG64()
-    bg.state = {"bit_generator": name, **_unstringify(state)}
+    bg.state = {"bit_generator": name, **_unstringify(state)}  # type: ignore[typeddict-item]  # keys come from the state
     return np.random.Generator(bg)
