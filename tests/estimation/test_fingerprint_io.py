@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from server import evaluate as evaluate_cli
-from server.estimation.fingerprint import ArtifactError, checksum, from_bytes, make_model, to_bytes
+from server.estimation.fingerprint import ArtifactError, checksum, evaluate, from_bytes, make_model, to_bytes
 from server.estimation.fingerprint.artifact import MAGIC
 from server.estimation.fingerprint.loaders import (
     read_survey_csv,
@@ -125,3 +125,9 @@ def test_evaluate_cli_prints_table(tmp_path, capsys, site_and_survey):
     out = capsys.readouterr().out
     lines = [ln for ln in out.splitlines() if ln.startswith(("knn", "nbc"))]
     assert len(lines) == 2
+
+
+def test_evaluate_on_an_empty_test_set_gives_nan_figures(site_and_survey):
+    _, fs = site_and_survey
+    metrics = evaluate(make_model("knn").fit(fs), fs.subset(np.zeros(len(fs), dtype=bool)))
+    assert metrics.n_test == 0 and np.isnan(metrics.p90_error_m) and np.isnan(metrics.mapping_rate)
