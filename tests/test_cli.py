@@ -1,4 +1,4 @@
-"""``python -m server`` as an operator runs it: migrate, serve (real process), keys."""
+"""``python -m server`` as an operator runs it: migrate, serve (real process), keys; the evaluation CLI starts."""
 
 from __future__ import annotations
 
@@ -65,3 +65,11 @@ def test_serve_migrates_and_answers_over_http(tmp_path):
     finally:
         process.terminate()
         process.wait(timeout=20)
+
+
+def test_evaluate_cli_runs_as_a_module():
+    result = subprocess.run(
+        [sys.executable, "-m", "localizer_tools.evaluate", "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "localizer_tools.evaluate" in result.stdout and "--algorithms" in result.stdout

@@ -5,7 +5,7 @@ import io
 import numpy as np
 import pytest
 
-from server import evaluate as evaluate_cli
+from localizer_tools import evaluate as evaluate_cli
 from server.estimation.fingerprint import ArtifactError, checksum, evaluate, from_bytes, make_model, to_bytes
 from server.estimation.fingerprint.artifact import MAGIC
 from server.estimation.fingerprint.loaders import (

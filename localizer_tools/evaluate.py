@@ -1,6 +1,6 @@
 """Train fingerprint algorithms on a data set and print held-out metrics.
 
-    python -m server.evaluate TRAIN [TEST] [--format csv|ujiindoorloc|ujible]
+    python -m localizer_tools.evaluate TRAIN [TEST] [--format csv|ujiindoorloc|ujible]
         [--split user|phone|random] [--algorithms nbc,knn,...] [--kinds wifi,ble]
         [--use-heading] [--missing powed|floor] [--params JSON]
 
@@ -33,14 +33,14 @@ def format_table(rows: list[dict], markdown: bool = False) -> str:
             out.append("| " + " | ".join(f.format(r[k]).strip() for k, f in COLUMNS) + " |")
         return "\n".join(out)
     widths = [len(f.format(0 if k != "algorithm" else "")) for k, f in COLUMNS]
-    out = ["  ".join(h.rjust(w) if i else h.ljust(w) for i, (h, w) in enumerate(zip(HEADS, widths)))]
+    out = ["  ".join(h.rjust(w) if i else h.ljust(w) for i, (h, w) in enumerate(zip(HEADS, widths, strict=True)))]
     for r in rows:
         out.append("  ".join(f.format(r[k]) for k, f in COLUMNS))
     return "\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m server.evaluate", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m localizer_tools.evaluate", description=__doc__.splitlines()[0])
     ap.add_argument("train")
     ap.add_argument("test", nargs="?")
     ap.add_argument("--format", default="csv", choices=["csv", "ujiindoorloc", "ujible"])
