@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.http_load import client, closed_loop, cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
-from server.estimation.fingerprint.synthetic import make_site  # noqa: E402
+from tests.helpers.synthetic import make_site  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
 API = "/api/v1"
@@ -141,7 +141,7 @@ async def capacities(base: str, server_pid: int, site_id: int, synth, filter: st
 
         cpu2 = cpu_seconds(server_pid)
         began = time.perf_counter()
-        await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks)))
+        await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks, strict=True)))
         batches_per_s = per_phone * concurrency / (time.perf_counter() - began)
         cpu3 = cpu_seconds(server_pid)
     per_request = None if cpu0 is None else ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / (per_phone * concurrency) * 1e3)

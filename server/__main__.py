@@ -6,10 +6,10 @@ import argparse
 import sys
 
 from server import migrate as migrations
-from server import repositories as repo
 from server.auth import SCOPES, create_key
 from server.config import get_settings
 from server.db import Database
+from server.store import keys as store
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,14 +65,14 @@ def _keys(db: Database, args: argparse.Namespace) -> int:
         return 0
     with db.transaction() as s:
         if args.keys_command == "revoke":
-            if not repo.revoke_api_key(s, args.id):
+            if not store.revoke_api_key(s, args.id):
                 print(f"no active key with id {args.id}", file=sys.stderr)
                 return 1
             print(f"revoked key {args.id}")
             return 0
-        for key in repo.list_api_keys(s):
-            state = f"revoked {key.revoked_at:%Y-%m-%d %H:%M}" if key.revoked_at else "active"
-            print(f"{key.id:>4}  {key.scope:<6}  {state:<24}  {key.name}")
+        for info in store.list_api_keys(s):
+            state = f"revoked {info.revoked_at:%Y-%m-%d %H:%M}" if info.revoked_at else "active"
+            print(f"{info.id:>4}  {info.scope:<6}  {state:<24}  {info.name}")
     return 0
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -14,10 +15,24 @@ from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
-from server.errors import ServiceError
+from server.errors import (
+    Conflict,
+    Invalid,
+    InvalidField,
+    NoReadyModel,
+    NotFound,
+    ServiceError,
+    TooLarge,
+    Unavailable,
+    UnsupportedMedia,
+)
 from server.schemas import BatchIn, LocateIn, SurveyIn
+from server.services.health import HealthService
+from server.services.models import ModelService
 from server.services.positioning import ModelCache, Positioning
 from server.services.sessions import SessionService
+from server.services.sites import SiteService
+from server.services.surveys import SurveyService
 from server.services.training import TrainingWorker
 
 
@@ -25,15 +40,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app for ``settings`` (default: from the environment). Migrations are not run here."""
     settings = settings or get_settings()
 
+    trainer = (
+        TrainingWorker(settings.database_url, settings.training_poll_s, settings.training_stale_after_s)
+        if settings.embedded_worker
+        else None
+    )
+
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        if settings.embedded_worker:
-            app.state.trainer = TrainingWorker(
-                settings.database_url, settings.training_poll_s, settings.training_stale_after_s
-            ).start()
+        if trainer is not None:
+            trainer.start()
         yield
-        if app.state.trainer is not None:
-            app.state.trainer.stop()
+        if trainer is not None:
+            trainer.stop()
         app.state.db.dispose()
 
     app = FastAPI(
@@ -42,24 +61,57 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         summary="Indoor positioning: RSS fingerprint surveys, models, locate and tracking sessions.",
         lifespan=lifespan,
     )
+    db = Database(settings.database_url)
     app.state.settings = settings
-    app.state.db = Database(settings.database_url)
-    app.state.auth = Authenticator(settings, app.state.db)
-    app.state.positioning = Positioning(app.state.db, ModelCache(app.state.db, settings.model_cache_size))
-    app.state.trainer = None
+    app.state.db = db
+    app.state.auth = Authenticator(settings, db)
+    app.state.trainer = trainer
+    # the services the routes get through ``server.api.deps``
+    app.state.positioning = Positioning(db, ModelCache(db, settings.model_cache_size))
+    app.state.sessions = SessionService(db, app.state.positioning)
+    app.state.sites = SiteService(db)
+    app.state.surveys = SurveyService(db, settings.max_survey_rows)
+    app.state.models = ModelService(db, on_queued=None if trainer is None else trainer.wake)
+    app.state.health = HealthService(db)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(InternalErrors)  # outermost of ours: sees what the size limit lets through
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
-    app.state.sessions = SessionService(app.state.db, app.state.positioning)
     for module in (health, sites, surveys, models, locate, sessions):
         app.include_router(module.router)
     _document_own_bodies(app)
     return app
 
 
-async def _service_error(_: Request, exc: ServiceError) -> JSONResponse:
-    return JSONResponse({"detail": exc.detail}, status_code=exc.status_code)
+#: the HTTP status of each domain error (the nearest class in its MRO decides)
+STATUS: dict[type[ServiceError], int] = {
+    ServiceError: 400,
+    NotFound: 404,
+    Conflict: 409,
+    TooLarge: 413,
+    UnsupportedMedia: 415,
+    Invalid: 422,
+    Unavailable: 503,
+}
+
+
+def status_of(exc: ServiceError) -> int:
+    return next(STATUS[cls] for cls in type(exc).__mro__ if cls in STATUS)
+
+
+def detail_of(exc: ServiceError) -> Any:
+    """The body's ``detail``: the error's own, with where an invalid field was in the request and
+    how to get a model added."""
+    if isinstance(exc, InvalidField):
+        return [{"loc": ["body", exc.field], "field": exc.field, "msg": exc.msg}]
+    if isinstance(exc, NoReadyModel):
+        return f"{exc.detail}: train one with POST /api/v1/sites/{exc.site_id}/models"
+    return exc.detail
+
+
+async def _service_error(_: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ServiceError)
+    return JSONResponse({"detail": detail_of(exc)}, status_code=status_of(exc))
 
 
 async def _validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -5,13 +5,12 @@ from __future__ import annotations
 import hashlib
 import secrets
 from dataclasses import dataclass
-from typing import Literal
 
-from server import repositories as repo
 from server.config import Settings
 from server.db import Database
+from server.domain import Scope
+from server.store import keys as store
 
-Scope = Literal["admin", "device"]
 SCOPES: tuple[Scope, ...] = ("admin", "device")
 
 
@@ -50,7 +49,7 @@ class Authenticator:
         """A key created from the CLI and not revoked (one indexed query)."""
         digest = hash_key(key)
         with self._db.transaction() as s:
-            found = repo.find_api_key(s, digest)
+            found = store.find_api_key(s, digest)
             return Principal(found.scope, digest) if found is not None else None
 
 
@@ -58,4 +57,4 @@ def create_key(db: Database, name: str, scope: Scope) -> tuple[int, str]:
     """Create and store a key; the plain key is returned once and never stored."""
     key = new_key()
     with db.transaction() as s:
-        return repo.add_api_key(s, name, scope, hash_key(key)).id, key
+        return store.add_api_key(s, name, scope, hash_key(key)).id, key

@@ -1,7 +1,8 @@
 """Survey bodies (JSON, CSV, UJIIndoorLoc CSV) parsed into validated fingerprints.
 
 Every format ends in the same pydantic validation (`FingerprintIn`), so the edge rules
-(RSS range, NaN, transmitter id format, empty scans) are written once. Errors name the
+(RSS range, NaN, transmitter id format, empty scans) are written once; the valid rows
+become domain ``FingerprintRecord``s. Errors name the
 field and the row: the 0-based index in ``fingerprints`` for JSON; for CSV the 0-based
 data row under the header (blank and skipped rows count) plus the 1-based file ``line``.
 """
@@ -17,6 +18,7 @@ from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
 
+from server.domain import FingerprintRecord
 from server.errors import Invalid, TooLarge, UnsupportedMedia
 from server.estimation.fingerprint.ujiindoorloc import UjiFormatError, UjiRecord, parse_ujiindoorloc
 from server.schemas import TX_ID_PATTERN, FingerprintIn
@@ -39,7 +41,7 @@ def invalid_rows(errors: list[dict[str, Any]], total: int | None = None) -> Inva
 
 @dataclass
 class ParsedSurvey:
-    fingerprints: list[FingerprintIn]
+    fingerprints: list[FingerprintRecord]
     skipped: int = 0
 
 
@@ -132,10 +134,10 @@ def _check_width(cells: list[str], header: list[str], data_row: int, line: int) 
         raise invalid_rows([_error(data_row, "row", f"has {len(cells)} cells, header has {len(header)}", line=line)])
 
 
-def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[FingerprintIn]:
+def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[FingerprintRecord]:
     """Validate every row; ``positions`` maps a CSV row to its (data row, file line) for the report."""
     try:
-        return _rows_adapter.validate_python(rows)
+        valid = _rows_adapter.validate_python(rows)
     except ValidationError as exc:
         errors = []
         for err in exc.errors(include_input=False, include_url=False):
@@ -147,6 +149,10 @@ def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[
             row, line = positions[row] if positions else (row, None)
             errors.append(_error(row, ".".join(map(str, field)), msg, line=line))
         raise invalid_rows(errors, exc.error_count()) from None
+    return [
+        FingerprintRecord(f.x, f.y, f.floor, f.rss, heading_deg=f.heading_deg, t=f.t, device=f.device, label=f.label)
+        for f in valid
+    ]
 
 
 def _error(row: int | None, field: str, msg: str, line: int | None = None) -> dict[str, Any]:

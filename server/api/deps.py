@@ -1,4 +1,8 @@
-"""Request dependencies: the database and the caller's scope."""
+"""Request dependencies: the caller's scope, and one ``Annotated`` alias per service.
+
+Routes take their services as parameters (``sites: Sites``); the app builds each service
+once (``server.app``), and tests swap one with ``app.dependency_overrides[provider]``.
+"""
 
 from __future__ import annotations
 
@@ -8,15 +12,16 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
+from server import config
 from server.auth import Principal, Scope
-from server.db import Database
+from server.services.health import HealthService
+from server.services.models import ModelService
+from server.services.positioning import Positioning as PositioningService
+from server.services.sessions import SessionService
+from server.services.sites import SiteService
+from server.services.surveys import SurveyService
 
 _bearer = HTTPBearer(auto_error=False, description="An admin or device API key.")
-
-
-async def database(request: Request) -> Database:
-    """The app's database; routes open their transaction explicitly so it commits before they answer."""
-    return request.app.state.db
 
 
 async def _principal(
@@ -48,6 +53,45 @@ def require(scope: Scope):
     return check
 
 
-DB = Annotated[Database, Depends(database)]
 Admin = Annotated[Principal, Depends(require("admin"))]
 Device = Annotated[Principal, Depends(require("device"))]
+
+
+# --- services (the providers are async: no thread hop to hand one out) -------------------------
+
+
+async def app_settings(request: Request) -> config.Settings:
+    return request.app.state.settings
+
+
+async def site_service(request: Request) -> SiteService:
+    return request.app.state.sites
+
+
+async def survey_service(request: Request) -> SurveyService:
+    return request.app.state.surveys
+
+
+async def model_service(request: Request) -> ModelService:
+    return request.app.state.models
+
+
+async def positioning_service(request: Request) -> PositioningService:
+    return request.app.state.positioning
+
+
+async def session_service(request: Request) -> SessionService:
+    return request.app.state.sessions
+
+
+async def health_service(request: Request) -> HealthService:
+    return request.app.state.health
+
+
+Settings = Annotated[config.Settings, Depends(app_settings)]
+Sites = Annotated[SiteService, Depends(site_service)]
+Surveys = Annotated[SurveyService, Depends(survey_service)]
+Models = Annotated[ModelService, Depends(model_service)]
+Positioning = Annotated[PositioningService, Depends(positioning_service)]
+Sessions = Annotated[SessionService, Depends(session_service)]
+Health = Annotated[HealthService, Depends(health_service)]

@@ -7,10 +7,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import DB, Admin
+from server.api.deps import Admin, Surveys
 from server.api.fastpath import json_body_doc
 from server.schemas import SurveyIn, SurveyResult
-from server.services.surveys import ingest_survey
 
 router = APIRouter(prefix="/api/v1/sites", tags=["surveys"])
 
@@ -38,7 +37,7 @@ async def upload_survey(
     site_id: int,
     request: Request,
     response: Response,
-    db: DB,
+    surveys: Surveys,
     _: Admin,
     format: Annotated[Literal["json", "csv", "ujiindoorloc"] | None, Query()] = None,
     dry_run: Annotated[bool, Query(description="Validate and count only; store nothing.")] = False,
@@ -47,19 +46,23 @@ async def upload_survey(
     ] = None,
 ) -> SurveyResult:
     body = await request.body()
-    ingested = await run_in_threadpool(
-        ingest_survey,
-        db,
+    outcome = await run_in_threadpool(
+        surveys.ingest,
         site_id,
         body,
         request.headers.get("content-type", ""),
         format,
-        max_rows=request.app.state.settings.max_survey_rows,
         idempotency_key=idempotency_key,
         dry_run=dry_run,
     )
-    if ingested.replayed or dry_run:
+    if outcome.replayed or dry_run:
         response.status_code = status.HTTP_200_OK
-    if ingested.replayed:
+    if outcome.replayed:
         response.headers["Idempotent-Replay"] = "true"
-    return ingested.result
+    return SurveyResult(
+        accepted=outcome.accepted,
+        reference_points=outcome.reference_points,
+        new_reference_points=outcome.new_reference_points,
+        skipped=outcome.skipped,
+        dry_run=outcome.dry_run,
+    )

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
 
-from server import repositories as repo
 from server.db import Database
-from server.errors import Conflict, Invalid, NotFound
+from server.domain import Located, ServingModel
+from server.errors import Conflict, InvalidField, NoReadyModel, NotFound
 from server.estimation.fingerprint import (
     ArtifactError,
     FingerprintModel,
@@ -25,24 +24,8 @@ from server.estimation.fingerprint import (
 from server.estimation.types import Fix
 from server.inline import WouldBlock, on_event_loop
 from server.services.lru import Lru
-
-#: (model id, algorithm, artifact SHA-256) of a ready model
-ServingModel = tuple[int, str, str]
-
-
-def ready_model(found: tuple | None) -> ServingModel | None:
-    """A row of ``repositories.serving_model`` as the model that serves, if it is ready to."""
-    if found is None:
-        return None
-    model_id, algorithm, status, sha256 = found
-    return (model_id, algorithm, sha256) if status == "ready" and sha256 is not None else None
-
-
-@dataclass(frozen=True)
-class Located:
-    fix: Fix
-    model_id: int
-    algorithm: str
+from server.store import models as store
+from server.store import sites as site_store
 
 
 class ModelCache:
@@ -66,10 +49,10 @@ class ModelCache:
             if model is not None:
                 return model
             with self._db.transaction() as s:
-                artifact = repo.model_artifact(s, model_id)
-                if artifact is None or artifact.sha256 != sha256:
-                    raise Conflict(f"model {model_id} changed while it was being loaded; retry")
-                blob = bytes(artifact.blob)
+                artifact = store.model_artifact(s, model_id)
+            if artifact is None or artifact.sha256 != sha256:
+                raise Conflict(f"model {model_id} changed while it was being loaded; retry")
+            blob = artifact.blob
             if checksum(blob) != sha256:
                 raise ArtifactError(f"model {model_id}: artifact does not match its recorded SHA-256")
             model = from_bytes(blob)
@@ -84,19 +67,20 @@ class Positioning:
         self.cache = cache
 
     def serving_model(self, site_id: int, model_id: int | None = None) -> ServingModel:
-        """(id, algorithm, artifact SHA-256) of the model that answers for the site: 404/409 when there is none."""
+        """The model that answers for the site: ``model_id``, else the site's active model.
+        ``NotFound`` (no such site or model) or ``Conflict`` (no model, or not ready) when none can."""
         with self._db.read() as conn:
-            found = repo.serving_model(conn, site_id, model_id)
+            found = store.serving_model(conn, site_id, model_id)
         if found is None:
             with self._db.transaction() as s:
-                if repo.get_site(s, site_id) is None:
+                if not site_store.site_exists(s, site_id):
                     raise NotFound(f"site {site_id} does not exist")
-                if model_id is not None:
-                    raise NotFound(f"model {model_id} does not exist on site {site_id}")
-                raise Conflict(f"site {site_id} has no ready model: train one with POST /api/v1/sites/{site_id}/models")
-        serving = ready_model(found)
+            if model_id is not None:
+                raise NotFound(f"model {model_id} does not exist on site {site_id}")
+            raise NoReadyModel(site_id)
+        serving = found.ready()
         if serving is None:
-            raise Conflict(f"model {found[0]} is {found[2]}, not ready")
+            raise Conflict(f"model {found.model_id} is {found.status}, not ready")
         return serving
 
     def locate(
@@ -111,13 +95,10 @@ class Positioning:
     ) -> Located:
         """A fix for one scan; ``near``/``radius_m`` restrict candidates around a previous estimate.
         ``serving`` names the model when the caller already knows it (else the database is asked)."""
-        found_id, algorithm, sha256 = serving or self.serving_model(site_id, model_id)
-        model = self.cache.get(found_id, sha256)
+        serving = serving or self.serving_model(site_id, model_id)
+        model = self.cache.get(serving.model_id, serving.sha256)
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)
         except UnknownTransmittersError:
-            raise Invalid(
-                [{"loc": ["body", "rss"], "field": "rss",
-                  "msg": f"no transmitter in the scan is known to model {found_id}"}]
-            ) from None
-        return Located(fix, found_id, algorithm)
+            raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
+        return Located(fix, serving.model_id, serving.algorithm)

@@ -13,12 +13,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from server import repositories as repo
 from server.db import Database
+from server.domain import ServingModel
 from server.errors import NotFound
 from server.estimation.types import Beacon, SiteMap
 from server.services.lru import Lru
-from server.services.positioning import ServingModel, ready_model
+from server.store import models as model_store
+from server.store import sites as store
 
 
 @dataclass(frozen=True)
@@ -47,19 +48,20 @@ class SiteContexts:
 
     def _load(self, site_id: int) -> SiteContext:
         with self._db.transaction() as s:
-            found = repo.site_context(s, site_id)
+            found = store.site_context(s, site_id)
+            active = model_store.serving_model(s, site_id, None)
         if found is None:
             raise NotFound(f"site {site_id} does not exist")
         return SiteContext(
-            revision=found["revision"],
-            settings=found["settings"],
+            revision=found.revision,
+            settings=dict(found.settings),
             map=SiteMap(
                 beacons={
-                    t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"], t["path_loss_exponent"])
-                    for t in found["transmitters"]
-                    if t["y"] is not None
+                    t.id: Beacon(t.id, t.x, t.y, t.floor, t.tx_power_dbm, t.path_loss_exponent)
+                    for t in found.transmitters
+                    if t.x is not None and t.y is not None
                 },
-                walls=found["walls"],
+                walls={level: list(walls) for level, walls in found.walls.items()},
             ),
-            active_model=ready_model(found["active_model"]),
+            active_model=None if active is None else active.ready(),
         )

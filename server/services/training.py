@@ -15,13 +15,18 @@ import math
 import multiprocessing
 import threading
 import traceback
+from dataclasses import asdict
 from datetime import UTC, datetime, timedelta
+from typing import Any
 
 from sqlalchemy.exc import IntegrityError
 
-from server import repositories as repo
 from server.db import Database
+from server.domain import FingerprintRecord, ModelSpec, Transmitter
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
+from server.store import models as store
+from server.store import sites as site_store
+from server.store import surveys as survey_store
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +35,8 @@ MIN_FINGERPRINTS_FOR_VALIDATION = 20
 
 
 def build_model(algorithm: str, params: dict, use_heading: bool, kinds: list[str] | None, transmitters: list[dict]):
-    """An unfitted model; the propagation model also gets the site's positioned transmitters."""
+    """An unfitted model; the propagation model also gets the site's positioned transmitters
+    (``{id, kind, floor, x, y, tx_power_dbm, path_loss_exponent}`` each)."""
     params = dict(params)
     if algorithm == "propagation":
         params.setdefault("transmitters", transmitters)
@@ -38,22 +44,24 @@ def build_model(algorithm: str, params: dict, use_heading: bool, kinds: list[str
 
 
 def run_training_job(database_url: str, model_id: int) -> str:
-    """Train one claimed model and store the outcome; returns its final status. Runs in a child process."""
+    """Train one claimed model and store the outcome; returns its final status (``gone``: the
+    model was deleted meanwhile). Runs in a child process."""
     db = Database(database_url)
     try:
         with db.transaction() as s:
-            job = repo.training_job(s, model_id)
-            spec = (job.site_id, job.algorithm, dict(job.params), job.use_heading, list(job.kinds), job.include_crowd)
-            site_id, algorithm, params, use_heading, kinds, include_crowd = spec
-            rows = repo.training_rows(s, site_id, include_crowd)
-            transmitters = repo.positioned_transmitters(s, site_id)
+            job = store.training_job(s, model_id)
+            if job is None:  # the model (or its site) was deleted meanwhile
+                return "gone"
+            site_id, spec = job.site_id, job.spec
+            rows = survey_store.training_rows(s, site_id, spec.include_crowd)
+            transmitters = site_store.positioned_transmitters(s, site_id)
         try:
-            model, metrics = _fit(rows, algorithm, params, use_heading, kinds, transmitters)
+            model, metrics = _fit(rows, spec, transmitters)
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin
             log.warning("training model %s failed:\n%s", model_id, traceback.format_exc())
             with db.transaction() as s:
-                repo.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
+                store.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
             return "failed"
         _store(db, site_id, model_id, blob, len(rows), metrics)
         return "ready"
@@ -61,13 +69,14 @@ def run_training_job(database_url: str, model_id: int) -> str:
         db.dispose()
 
 
-def _fit(rows, algorithm, params, use_heading, kinds, transmitters):
+def _fit(rows: list[FingerprintRecord], spec: ModelSpec, transmitters: list[Transmitter]):
     def factory():
-        return build_model(algorithm, params, use_heading, kinds, transmitters)
+        return build_model(spec.algorithm, dict(spec.params), spec.use_heading, list(spec.kinds),
+                           [asdict(t) for t in transmitters])
 
-    fs = FingerprintSet.from_rows(rows) if rows else None
+    fs = FingerprintSet.from_rows([_row(r) for r in rows]) if rows else None
     if fs is None:
-        if algorithm != "propagation":
+        if spec.algorithm != "propagation":
             raise ValueError("the site has no fingerprints to train on")
         return factory().fit(None), None
     if len(fs) < MIN_FINGERPRINTS_FOR_VALIDATION:
@@ -78,13 +87,19 @@ def _fit(rows, algorithm, params, use_heading, kinds, transmitters):
     return model, {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
 
 
+def _row(fp: FingerprintRecord) -> dict[str, Any]:
+    """A fingerprint as ``FingerprintSet.from_rows`` reads it."""
+    return {"x": fp.x, "y": fp.y, "floor": fp.floor, "rss": fp.rss, "heading_deg": fp.heading_deg,
+            "device": fp.device, "t": fp.t, "label": fp.label}
+
+
 def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None) -> None:
     for activate in (True, False):
         try:
             with db.transaction() as s:
-                repo.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics)
-                if activate and not repo.has_active_model(s, site_id):
-                    repo.activate_model(s, site_id, model_id)
+                store.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics)
+                if activate and not store.has_active_model(s, site_id):
+                    store.activate_model(s, site_id, model_id)
             return
         except IntegrityError:
             # Another model of the site became active at the same moment: store this one inactive.
@@ -128,7 +143,7 @@ class TrainingWorker:
         done = 0
         while not self._stop.is_set():
             with self._db.transaction() as s:
-                model_id = repo.claim_next_model(s, datetime.now(UTC) - self.stale_after)
+                model_id = store.claim_next_model(s, datetime.now(UTC) - self.stale_after)
             if model_id is None:
                 return done
             self._train(model_id)
@@ -146,10 +161,10 @@ class TrainingWorker:
             child.terminate()
             child.join()
             with self._db.transaction() as s:
-                repo.requeue_model(s, model_id)
+                store.requeue_model(s, model_id)
         elif child.exitcode != 0:
             with self._db.transaction() as s:
-                repo.fail_training(s, model_id, f"the training process died (exit code {child.exitcode})")
+                store.fail_training(s, model_id, f"the training process died (exit code {child.exitcode})")
 
     def serve_forever(self) -> None:
         """Poll for jobs until `stop` (runs in the worker thread, or in the foreground for the CLI)."""

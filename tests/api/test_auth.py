@@ -5,9 +5,9 @@ from __future__ import annotations
 import httpx
 import pytest
 
-from server import repositories as repo
 from server.auth import create_key
 from server.db import Database
+from server.store import keys
 
 ADMIN_ENDPOINTS = [
     ("POST", "/api/v1/sites", {"name": "x"}),
@@ -44,12 +44,12 @@ def test_keys_created_from_the_cli_work_until_revoked(live_server, clean_db):
     db = Database(clean_db)
     key_id, key = create_key(db, "survey team", "admin")
     with db.transaction() as s:
-        assert [k.name for k in repo.list_api_keys(s)] == ["survey team"]
-        assert all(key not in (k.key_hash, k.name) for k in repo.list_api_keys(s))  # only the hash is stored
+        assert [k.name for k in keys.list_api_keys(s)] == ["survey team"]
+        assert all(key not in (k.key_hash, k.name) for k in keys.list_api_keys(s))  # only the hash is stored
     with httpx.Client(base_url=live_server.url, headers={"Authorization": f"Bearer {key}"}) as client:
         assert client.get("/api/v1/sites").status_code == 200
         with db.transaction() as s:
-            assert repo.revoke_api_key(s, key_id)
+            assert keys.revoke_api_key(s, key_id)
         assert client.get("/api/v1/sites").status_code == 401
     db.dispose()
 

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from server.estimation.fingerprint.synthetic import make_site
+from tests.helpers.synthetic import make_site
 
 SYNTH = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
 

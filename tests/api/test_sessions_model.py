@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.estimation.fingerprint.synthetic import make_site
 from tests.api.test_models import wait_for
+from tests.helpers.synthetic import make_site
 
 SYNTH = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
 
@@ -53,7 +53,7 @@ def test_cold_start_and_tracking_with_a_trained_model(device, trained, name):
     sid = device.post("/api/v1/sessions", json={"site_id": trained["site"], "filter": name}).json()["id"]
     batches, truth = walk_batches(12, start=(0.5, 4.0))
     errors = []
-    for b, (x, y) in zip(batches, truth):
+    for b, (x, y) in zip(batches, truth, strict=True):
         r = device.post(f"/api/v1/sessions/{sid}/batches", json=b)
         assert r.status_code == 200, r.text
         r = r.json()

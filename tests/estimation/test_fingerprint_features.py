@@ -12,7 +12,7 @@ from server.estimation.fingerprint import (
     make_model,
 )
 from server.estimation.fingerprint.dataset import group_split, random_split
-from server.estimation.fingerprint.synthetic import make_site
+from tests.helpers.synthetic import make_site
 
 HEADING_ALGOS = ["knn", "nbc", "kde", "tkbe", "svm"]
 
@@ -104,7 +104,7 @@ def _dropout_hits(missing, name):
     rng = np.random.default_rng(8)
     m = make_model(name, {"missing": missing}).fit(fs)
     hits = 0
-    for label, x, y, f in site.rp:
+    for _label, x, y, f in site.rp:
         scan = site.scan(x, y, f, None, rng, noise_db=1.0)
         keep = sorted(scan, key=scan.get, reverse=True)[: max(3, len(scan) * 2 // 3)]  # weakest third lost
         fix = m.locate({t: scan[t] for t in keep})

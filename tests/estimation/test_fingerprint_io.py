@@ -14,8 +14,8 @@ from server.estimation.fingerprint.loaders import (
     read_ujiindoorloc,
     write_survey_csv,
 )
-from server.estimation.fingerprint.synthetic import make_site
 from server.estimation.fingerprint.ujiindoorloc import UjiFormatError, parse_ujiindoorloc
+from tests.helpers.synthetic import make_site
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from server.estimation.fingerprint import (
     evaluate,
     make_model,
 )
-from server.estimation.fingerprint.synthetic import make_site
 from server.estimation.types import Fix
+from tests.helpers.synthetic import make_site
 
 FAST = {"svm": {"time_budget_s": 5.0, "C": 10.0}}
 
@@ -58,8 +58,8 @@ def test_scan_at_reference_point_maps_back_with_right_floor(name, site, fitted):
     floors = np.array([fx.floor for fx in fixes])
     truth_floor = np.array([q[3] for q in qs])
     assert np.all(floors == truth_floor), f"{name}: wrong floor"
-    err = np.array([np.hypot(fx.x - q[1], fx.y - q[2]) for fx, q in zip(fixes, qs)])
-    mapped = np.mean([fx.reference_point == q[0] for fx, q in zip(fixes, qs)])
+    err = np.array([np.hypot(fx.x - q[1], fx.y - q[2]) for fx, q in zip(fixes, qs, strict=True)])
+    mapped = np.mean([fx.reference_point == q[0] for fx, q in zip(fixes, qs, strict=True)])
     if name == "propagation":  # no fingerprint matching: a looser bound
         assert err.mean() < 2.5
     else:
@@ -165,7 +165,7 @@ def test_dedicated_floor_classifier(clf, site, survey):
     model = KNNModel(floor_classifier=clf).fit(survey)
     qs = _queries(site, n_per_rp=1, seed=12)
     fixes = model.locate_many([q[4] for q in qs])
-    assert all(fx.floor == q[3] for fx, q in zip(fixes, qs))
+    assert all(fx.floor == q[3] for fx, q in zip(fixes, qs, strict=True))
     assert all(c.floor == fx.floor for fx in fixes for c in fx.candidates)
     with pytest.raises(ValueError):
         KNNModel(floor_classifier="magic")

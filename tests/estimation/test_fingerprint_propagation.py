@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from server.estimation.fingerprint import PropagationModel, cold_start_fix, exp_weights, fuse_fixes
-from server.estimation.fingerprint.synthetic import make_site
 from server.estimation.radio import fit_path_loss, multilaterate, weighted_centroid
 from server.estimation.types import Fix
+from tests.helpers.synthetic import make_site
 
 
 def test_fit_path_loss_recovers_r0_and_gamma():

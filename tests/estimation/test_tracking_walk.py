@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from server.estimation.tracking import make_tracker, tracker_names
-from server.estimation.tracking.simulate import run_tracker, simulate_walk
+from tests.helpers.simulate import run_tracker, simulate_walk
 
 WALKS = {
-    "straight": dict(legs=((30.0, 60),)),
-    "L": dict(legs=((0.0, 30), (90.0, 30))),
+    "straight": {"legs": ((30.0, 60),)},
+    "L": {"legs": ((0.0, 30), (90.0, 30))},
 }
 
 

@@ -1,4 +1,4 @@
-"""A small synthetic site for tests and demos: path-loss radio, a grid of reference
+"""A small synthetic site for tests and benchmarks: path-loss radio, a grid of reference
 points on several floors, WiFi and BLE transmitters, optional body shadowing.
 
 RSS = R0 − 10·γ·log10(d) − floor_loss·|Δfloor| − body_loss·[transmitter behind the
@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dataset import FingerprintSet
+from server.estimation.fingerprint.dataset import FingerprintSet
+from server.estimation.radio import rss_at
 
 
 @dataclass
@@ -34,7 +35,7 @@ class SyntheticSite:
             dx, dy = t["x"] - x, t["y"] - y
             dz = (t["floor"] - floor) * self.floor_height_m
             d = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1.0)
-            rss = t["tx_power_dbm"] - 10 * t["path_loss_exponent"] * math.log10(d)
+            rss = rss_at(d, t["tx_power_dbm"], t["path_loss_exponent"])
             rss -= self.floor_loss_db * abs(t["floor"] - floor)
             if heading_deg is not None and self.body_loss_db:
                 h = math.radians(heading_deg)

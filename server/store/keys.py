@@ -1,0 +1,46 @@
+"""API keys created from the CLI, stored by their SHA-256 only."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import cast
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from server.domain import ApiKeyInfo, Scope
+from server.tables import ApiKey
+
+
+def _info(key: ApiKey) -> ApiKeyInfo:
+    return ApiKeyInfo(
+        id=key.id, name=key.name, scope=cast(Scope, key.scope), key_hash=key.key_hash,
+        created_at=key.created_at, revoked_at=key.revoked_at,
+    )
+
+
+def add_api_key(s: Session, name: str, scope: Scope, key_hash: str) -> ApiKeyInfo:
+    key = ApiKey(name=name, scope=scope, key_hash=key_hash)
+    s.add(key)
+    s.flush()
+    return _info(key)
+
+
+def find_api_key(s: Session, key_hash: str) -> ApiKeyInfo | None:
+    """The key with this hash, unless it was revoked."""
+    key = s.scalar(select(ApiKey).where(ApiKey.key_hash == key_hash, ApiKey.revoked_at.is_(None)))
+    return None if key is None else _info(key)
+
+
+def list_api_keys(s: Session) -> list[ApiKeyInfo]:
+    return [_info(key) for key in s.scalars(select(ApiKey).order_by(ApiKey.id))]
+
+
+def revoke_api_key(s: Session, key_id: int) -> bool:
+    """False when there is no such key, or it was already revoked."""
+    result = s.execute(
+        update(ApiKey)
+        .where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None))
+        .values(revoked_at=datetime.now(UTC))
+    )
+    return result.rowcount == 1

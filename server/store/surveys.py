@@ -1,0 +1,152 @@
+"""Survey uploads, the reference points they create and the fingerprints they store.
+
+Survey and crowd fingerprints share one table, kept apart by ``source``; reference
+points are keyed by ``(floor, label)`` or ``(floor, x, y)`` to the millimetre.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.orm import Session
+
+from server.domain import FingerprintRecord, ReferencePointSummary, SurveyOutcome
+from server.store.sites import add_heard_transmitters
+from server.tables import Fingerprint, ReferencePoint, SurveyUpload
+
+
+def find_upload(s: Session, site_id: int, idempotency_key: str) -> SurveyOutcome | None:
+    """The outcome stored for an earlier upload with this key, as a replay."""
+    stored = s.scalar(
+        select(SurveyUpload.result).where(SurveyUpload.site_id == site_id, SurveyUpload.idempotency_key == idempotency_key)
+    )
+    if stored is None:
+        return None
+    return SurveyOutcome(
+        accepted=stored["accepted"], reference_points=stored["reference_points"],
+        new_reference_points=stored["new_reference_points"], skipped=stored.get("skipped", 0), replayed=True,
+    )
+
+
+def reference_point_key(fp: FingerprintRecord) -> str:
+    """Fingerprints sharing (floor, key) share a reference point: by label, else by position (mm)."""
+    return f"label:{fp.label}" if fp.label is not None else f"xy:{round(fp.x, 3):g},{round(fp.y, 3):g}"
+
+
+def add_survey(
+    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], idempotency_key: str | None, skipped: int
+) -> SurveyOutcome:
+    """Store a validated survey: reference points, unseen transmitters and fingerprints, in bulk."""
+    keys = [(fp.floor, reference_point_key(fp)) for fp in fingerprints]
+    rp_ids, created = _ensure_reference_points(s, site_id, fingerprints, keys)
+    add_heard_transmitters(s, site_id, {tx for fp in fingerprints for tx in fp.rss})
+    upload = SurveyUpload(site_id=site_id, idempotency_key=idempotency_key)
+    s.add(upload)
+    s.flush()
+    s.execute(
+        insert(Fingerprint),
+        [
+            {
+                "site_id": site_id,
+                "source": "survey",
+                "reference_point_id": rp_ids[key],
+                "upload_id": upload.id,
+                "floor": fp.floor,
+                "x": fp.x,
+                "y": fp.y,
+                "heading_deg": None if fp.heading_deg is None else fp.heading_deg % 360.0,
+                "t": fp.t,
+                "device": fp.device,
+                "rss": dict(fp.rss),
+                "samples": 1,
+            }
+            for fp, key in zip(fingerprints, keys, strict=True)
+        ],
+    )
+    _recentre_labelled_points(s, [rp_ids[k] for k in set(keys) if k[1].startswith("label:")])
+    outcome = SurveyOutcome(
+        accepted=len(fingerprints), reference_points=len(set(keys)), new_reference_points=created, skipped=skipped,
+    )
+    upload.result = {
+        "accepted": outcome.accepted,
+        "reference_points": outcome.reference_points,
+        "new_reference_points": outcome.new_reference_points,
+        "skipped": outcome.skipped,
+    }
+    return outcome
+
+
+def _ensure_reference_points(
+    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], keys: list[tuple[int, str]]
+) -> tuple[dict[tuple[int, str], int], int]:
+    """Ids of the reference points for ``keys``, creating the missing ones; also how many were new."""
+    ids: dict[tuple[int, str], int] = {}
+    for rp_id, floor, key in s.execute(
+        select(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key).where(ReferencePoint.site_id == site_id)
+    ):
+        ids[(floor, key)] = rp_id
+    first: dict[tuple[int, str], FingerprintRecord] = {}
+    for fp, key in zip(fingerprints, keys, strict=True):
+        if key not in ids:
+            first.setdefault(key, fp)
+    if first:
+        created = s.execute(
+            insert(ReferencePoint).returning(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key),
+            [
+                {"site_id": site_id, "floor": floor, "key": key, "label": fp.label, "x": fp.x, "y": fp.y}
+                for (floor, key), fp in first.items()
+            ],
+        )
+        for rp_id, floor, key in created:
+            ids[(floor, key)] = rp_id
+    return ids, len(first)
+
+
+def _recentre_labelled_points(s: Session, rp_ids: list[int]) -> None:
+    """A labelled reference point sits at the mean position of its fingerprints."""
+    for chunk in _chunks(rp_ids, 500):
+        means = s.execute(
+            select(Fingerprint.reference_point_id, func.avg(Fingerprint.x), func.avg(Fingerprint.y))
+            .where(Fingerprint.reference_point_id.in_(chunk))
+            .group_by(Fingerprint.reference_point_id)
+        ).all()
+        s.execute(update(ReferencePoint), [{"id": i, "x": x, "y": y} for i, x, y in means])
+
+
+def _chunks(items: list[int], size: int) -> Iterator[list[int]]:
+    for i in range(0, len(items), size):
+        yield items[i : i + size]
+
+
+def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
+    """The site's reference points with how many fingerprints each holds, by floor."""
+    counts = (
+        select(Fingerprint.reference_point_id, func.count().label("n"))
+        .where(Fingerprint.site_id == site_id)
+        .group_by(Fingerprint.reference_point_id)
+        .subquery()
+    )
+    rows = s.execute(
+        select(ReferencePoint.label, ReferencePoint.floor, ReferencePoint.x, ReferencePoint.y, func.coalesce(counts.c.n, 0))
+        .outerjoin(counts, counts.c.reference_point_id == ReferencePoint.id)
+        .where(ReferencePoint.site_id == site_id)
+        .order_by(ReferencePoint.floor, ReferencePoint.id)
+    )
+    return [ReferencePointSummary(*row) for row in rows]
+
+
+def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:
+    """The site's fingerprints (survey ones only, unless ``include_crowd``) with their reference point's label."""
+    query = (
+        select(
+            Fingerprint.x, Fingerprint.y, Fingerprint.floor, Fingerprint.rss, Fingerprint.heading_deg,
+            Fingerprint.t, Fingerprint.device, ReferencePoint.label,
+        )
+        .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
+        .where(Fingerprint.site_id == site_id)
+        .order_by(Fingerprint.id)
+    )
+    if not include_crowd:
+        query = query.where(Fingerprint.source == "survey")
+    return [FingerprintRecord(*row) for row in s.execute(query)]
