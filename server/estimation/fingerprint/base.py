@@ -18,6 +18,7 @@ import inspect
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Self
 
 import numpy as np
 
@@ -112,7 +113,7 @@ class FingerprintModel:
         for klass in cls.__mro__:
             if "__init__" not in vars(klass) or klass is object:
                 continue
-            for p in inspect.signature(klass.__init__).parameters.values():
+            for p in inspect.signature(vars(klass)["__init__"]).parameters.values():
                 if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name not in names:
                     names.append(p.name)
         return names
@@ -125,7 +126,7 @@ class FingerprintModel:
         return f"{type(self).__name__}({args})"
 
     # ---- fitting -----------------------------------------------------------------
-    def fit(self, fs: FingerprintSet) -> FingerprintModel:
+    def fit(self, fs: FingerprintSet) -> Self:
         t0 = time.perf_counter()
         fs = fs.select_kinds(self.kinds).drop_empty()
         if len(fs) == 0 and self.needs_fingerprints:
@@ -289,7 +290,7 @@ class FingerprintModel:
             logs = self._log_scores(Q[sl], None if Hq is None else Hq[sl], m)
             if m is not None:
                 masked = np.where(m, logs, -np.inf)
-                dead = ~np.isfinite(masked).any(axis=1)  # restriction left nothing: ignore it
+                dead = np.asarray(~np.isfinite(masked).any(axis=1))  # restriction left nothing: ignore it
                 logs = np.where(dead[:, None], logs, masked)
             parts.append(self._reduce(logs))
         return _concat_predictions(parts)

@@ -20,7 +20,11 @@ SURVEY_COLUMNS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
 def read_survey_csv(source) -> FingerprintSet:
     """API.md's survey CSV: columns x, y, floor, heading_deg, label, device, t, then one
     column per transmitter id; an empty cell = not heard. ``source``: path or text."""
-    text = source if isinstance(source, str) and "\n" in source else open(source, newline="").read()
+    if isinstance(source, str) and "\n" in source:
+        text = source
+    else:
+        with open(source, newline="") as f:
+            text = f.read()
     reader = csv.reader(io.StringIO(text))
     header = [h.strip() for h in next(reader)]
     missing = [c for c in ("x", "y", "floor") if c not in header]
@@ -31,9 +35,11 @@ def read_survey_csv(source) -> FingerprintSet:
     rows = list(reader)
     n = len(rows)
     rss = np.full((n, len(tx_cols)), np.nan)
-    col = lambda name, conv, default: [  # noqa: E731
-        conv(r[meta_cols[name]]) if name in meta_cols and r[meta_cols[name]].strip() else default for r in rows
-    ]
+
+    def col(name: str, conv, default) -> np.ndarray:
+        j = meta_cols.get(name)
+        return np.array([conv(r[j]) if j is not None and r[j].strip() else default for r in rows], dtype=object)
+
     for i, r in enumerate(rows):
         for k, (j, _) in enumerate(tx_cols):
             if j < len(r) and r[j].strip():

@@ -63,7 +63,7 @@ class PropagationModel(FingerprintModel):
         known = [t for t in (self.transmitters or []) if not self.kinds or tx_kind(t["id"]) in self.kinds]
         if fs is None:
             fs = FingerprintSet(rss=np.zeros((0, len(known))), tx_ids=[t["id"] for t in known],
-                                x=[], y=[], floor=[])
+                                x=np.zeros(0), y=np.zeros(0), floor=np.zeros(0, dtype=int))
         missing_cols = [t["id"] for t in known if t["id"] not in fs.tx_ids]
         if missing_cols:
             fs = fs.select_transmitters(list(fs.tx_ids) + missing_cols)
@@ -157,7 +157,7 @@ class PropagationModel(FingerprintModel):
         for j, w in zip(ok[:3], power[:3], strict=True):
             key = (int(self.tx_building_[j]), int(self.tx_floor_[j]))
             votes[key] = votes.get(key, 0.0) + w
-        building, floor = max(votes, key=votes.get) if group is None else group
+        building, floor = max(votes, key=lambda k: votes[k]) if group is None else group
         d = range_from_rss(rss_row[ok], self.r0_[ok], self.gamma_[ok])
         dz = (self.tx_floor_[ok] - floor) * self.floor_height_m
         r = np.sqrt(np.maximum(d**2 - dz**2, 0.25))
@@ -177,7 +177,7 @@ class PropagationModel(FingerprintModel):
         R = self._as_matrix(rss)
         n = len(R)
         clf = getattr(self, "floor_clf_", None)
-        groups = [None] * n
+        groups: list[tuple[int, int] | None] = [None] * n
         if clf is not None and n:
             g = clf.predict(self._floor_design(self.encoder_.transform(R), self._headings(heading_deg, n)))
             groups = [(int(self.group_building_[k]), int(self.group_floor_[k])) for k in g]
