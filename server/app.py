@@ -110,12 +110,13 @@ def detail_of(exc: ServiceError) -> Any:
 
 
 async def _service_error(_: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, ServiceError)
+    assert isinstance(exc, ServiceError)  # registered for ServiceError only
     return JSONResponse({"detail": detail_of(exc)}, status_code=status_of(exc))
 
 
-async def _validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
     """422 naming each offending field, without echoing the (possibly huge) input back."""
+    assert isinstance(exc, RequestValidationError)  # registered for RequestValidationError only
     errors = []
     for err in exc.errors():
         loc = [p for p in err.get("loc", ()) if p != "[key]"]
@@ -127,14 +128,15 @@ def _document_own_bodies(app: FastAPI) -> None:
     """The survey, batch and locate routes read their bodies themselves; publish the JSON schemas they enforce."""
     build = app.openapi
 
-    def openapi() -> dict:
-        if app.openapi_schema is None:
-            schema = build()
-            components = schema.setdefault("components", {}).setdefault("schemas", {})
-            for model in (SurveyIn, BatchIn, LocateIn):
-                body = model.model_json_schema(ref_template="#/components/schemas/{model}")
-                components.update(body.pop("$defs", {}))
-                components[model.__name__] = body
-        return app.openapi_schema
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = build()  # also kept as app.openapi_schema: completed in place, once
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        for model in (SurveyIn, BatchIn, LocateIn):
+            body = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            components.update(body.pop("$defs", {}))
+            components[model.__name__] = body
+        return schema
 
-    app.openapi = openapi
+    app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema

@@ -141,12 +141,12 @@ def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[
     except ValidationError as exc:
         errors = []
         for err in exc.errors(include_input=False, include_url=False):
-            row, *field = err["loc"]
+            index, *field = err["loc"]
             msg = err["msg"]
             if field and field[-1] == "[key]":
                 field = field[:-1]
                 msg = f"unknown transmitter id format {field[-1]!r}; expected {TX_ID_HELP}"
-            row, line = positions[row] if positions else (row, None)
+            row, line = positions[int(index)] if positions else (int(index), None)
             errors.append(_error(row, ".".join(map(str, field)), msg, line=line))
         raise invalid_rows(errors, exc.error_count()) from None
     return [

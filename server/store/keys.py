@@ -9,6 +9,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.domain import ApiKeyInfo, Scope
+from server.store._results import changed
 from server.tables import ApiKey
 
 
@@ -43,4 +44,4 @@ def revoke_api_key(s: Session, key_id: int) -> bool:
         .where(ApiKey.id == key_id, ApiKey.revoked_at.is_(None))
         .values(revoked_at=datetime.now(UTC))
     )
-    return result.rowcount == 1
+    return changed(result) == 1

@@ -13,6 +13,7 @@ from sqlalchemy import Connection, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import Artifact, ModelInfo, ModelSpec, ModelStatus, ServingCandidate
+from server.store._results import changed
 from server.store.sites import touch_site
 from server.tables import Model, ModelArtifact
 
@@ -111,7 +112,7 @@ def claim_next_model(s: Session, stale_before: datetime) -> int | None:
             .where(Model.id == model_id, claimable)
             .values(status="training", claimed_at=datetime.now(UTC), error=None)
         )
-        if taken.rowcount == 1:
+        if changed(taken) == 1:
             return model_id
     return None
 

@@ -13,6 +13,7 @@ from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload
 
 from server.domain import Floor, NewSite, Site, SiteContextRecord, SiteCounts, Transmitter, Wall
+from server.store._results import changed
 from server.tables import Fingerprint, ReferencePoint, new_revision
 from server.tables import Floor as FloorRow
 from server.tables import Site as SiteRow
@@ -74,7 +75,7 @@ def list_sites(s: Session) -> list[Site]:
 
 def delete_site(s: Session, site_id: int) -> bool:
     """Delete the site and (by cascade) everything of it; False when there was no such site."""
-    return s.execute(delete(SiteRow).where(SiteRow.id == site_id)).rowcount == 1
+    return changed(s.execute(delete(SiteRow).where(SiteRow.id == site_id))) == 1
 
 
 def site_counts(s: Session, site_ids: Iterable[int]) -> dict[int, SiteCounts]:
@@ -135,7 +136,7 @@ def merge_site_settings(s: Session, site_id: int, changes: Mapping[str, Any]) ->
             .values(settings=merged, revision=new_revision())
             .execution_options(synchronize_session=False)
         )
-        if done.rowcount == 1:
+        if changed(done) == 1:
             return True
 
 

@@ -82,10 +82,9 @@ def _ensure_reference_points(
 ) -> tuple[dict[tuple[int, str], int], int]:
     """Ids of the reference points for ``keys``, creating the missing ones; also how many were new."""
     ids: dict[tuple[int, str], int] = {}
-    for rp_id, floor, key in s.execute(
-        select(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key).where(ReferencePoint.site_id == site_id)
-    ):
-        ids[(floor, key)] = rp_id
+    stored = select(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key).where(ReferencePoint.site_id == site_id)
+    for rp_id, floor, rp_key in s.execute(stored):
+        ids[(floor, rp_key)] = rp_id
     first: dict[tuple[int, str], FingerprintRecord] = {}
     for fp, key in zip(fingerprints, keys, strict=True):
         if key not in ids:
@@ -94,12 +93,12 @@ def _ensure_reference_points(
         created = s.execute(
             insert(ReferencePoint).returning(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key),
             [
-                {"site_id": site_id, "floor": floor, "key": key, "label": fp.label, "x": fp.x, "y": fp.y}
-                for (floor, key), fp in first.items()
+                {"site_id": site_id, "floor": floor, "key": rp_key, "label": fp.label, "x": fp.x, "y": fp.y}
+                for (floor, rp_key), fp in first.items()
             ],
         )
-        for rp_id, floor, key in created:
-            ids[(floor, key)] = rp_id
+        for rp_id, floor, rp_key in created:
+            ids[(floor, rp_key)] = rp_id
     return ids, len(first)
 
 
