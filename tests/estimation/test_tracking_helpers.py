@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from server.estimation.radio import range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
@@ -16,8 +17,6 @@ from server.estimation.tracking import (
     make_crowd_point,
     make_tracker,
     merge_points,
-    range_and_std,
-    range_from_rss,
 )
 from server.estimation.tracking.landmarks import ScalarKalman, TukeyFilter
 from server.estimation.types import CrowdPoint

@@ -8,8 +8,6 @@
     blob = to_bytes(model); model = from_bytes(blob)     # sha256-checked artifact
 """
 
-from server.estimation.radio import multilaterate  # canonical home: server.estimation.radio
-
 from .artifact import ArtifactError, checksum, from_bytes, to_bytes
 from .base import FingerprintModel, NotFittedError, UnknownTransmittersError
 from .dataset import FingerprintSet, ReferencePoints, group_split, random_split
@@ -30,5 +28,5 @@ __all__ = [
     "NBCModel", "NotFittedError", "Prediction", "PropagationModel", "ReferencePoints", "RssEncoder",
     "SVMModel", "TKBEModel", "UnknownTransmittersError", "checksum", "cold_start_fix", "evaluate",
     "exp_weights", "fit_and_validate", "from_bytes", "fuse_fixes", "group_split",
-    "heading_features", "holdout_split", "make_model", "multilaterate", "random_split", "to_bytes",
+    "heading_features", "holdout_split", "make_model", "random_split", "to_bytes",
 ]

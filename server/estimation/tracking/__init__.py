@@ -11,7 +11,6 @@ range_std_m, on_wall=None) -> bool, mean, covariance, reset(mean, cov),
 set_walls(walls), search_region(), to_dict(), from_dict().
 """
 
-from server.estimation.radio import range_and_std, range_from_rss  # canonical home: server.estimation.radio
 from server.estimation.tracking.base import TRACKERS, Tracker, make_tracker, tracker_from_dict, tracker_names
 from server.estimation.tracking.crowd import find_merge_target, gate, make_crowd_point, merge_points
 from server.estimation.tracking.ekf import EKFTracker
@@ -43,6 +42,4 @@ __all__ = [
     "make_crowd_point",
     "find_merge_target",
     "merge_points",
-    "range_from_rss",
-    "range_and_std",
 ]
