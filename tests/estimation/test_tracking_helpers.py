@@ -93,7 +93,7 @@ def test_floor_hysteresis():
 
 
 def test_crowd_gate():
-    ok = dict(estimate_mean=[1, 1], estimate_cov=np.eye(2) * 0.5, fix_mean=[2, 1], rss={"a": -60, "b": -70, "c": -80})
+    ok = {"estimate_mean": [1, 1], "estimate_cov": np.eye(2) * 0.5, "fix_mean": [2, 1], "rss": {"a": -60, "b": -70, "c": -80}}
     assert gate(**ok)
     assert not gate(**{**ok, "estimate_cov": np.eye(2) * 1.5})  # trace 3 > 2
     assert not gate(**{**ok, "fix_mean": [5, 1]})  # 4 m apart > 3
