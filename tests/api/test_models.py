@@ -106,10 +106,15 @@ def test_failed_training_reports_a_readable_error(admin, site):
 def test_locate_409_without_a_ready_model_and_422_for_unknown_transmitters(admin, device, site):
     url = f"/api/v1/sites/{site['id']}/locate"
     none_yet = device.post(url, json={"rss": {"wifi:w00": -50}})
-    assert none_yet.status_code == 409 and "no ready model" in none_yet.json()["detail"]
-    train(admin, site, algorithm="knn")
+    assert none_yet.status_code == 409
+    hint = f"train one with POST /api/v1/sites/{site['id']}/models"
+    assert none_yet.json() == {"detail": f"site {site['id']} has no ready model: {hint}"}
+    model = train(admin, site, algorithm="knn")
     unknown = device.post(url, json={"rss": {"wifi:never-seen": -50}})
-    assert unknown.status_code == 422 and unknown.json()["detail"][0]["field"] == "rss"
+    assert unknown.status_code == 422
+    assert unknown.json() == {"detail": [
+        {"loc": ["body", "rss"], "field": "rss", "msg": f"no transmitter in the scan is known to model {model['id']}"}
+    ]}
     assert device.post(url, json={"rss": {"wifi:w00": 3}}).status_code == 422
     assert device.post(url, json={"rss": {}}).status_code == 422
     assert device.post("/api/v1/sites/999/locate", json={"rss": {"wifi:w00": -50}}).status_code == 404
@@ -135,6 +140,7 @@ def test_invalid_model_requests_are_422_and_store_nothing(admin, site, snapshot,
     before = snapshot()
     answer = admin.post(f"/api/v1/sites/{site['id']}/models", json=body)
     assert answer.status_code == 422 and answer.json()["detail"][0]["field"].startswith(field)
+    assert answer.json()["detail"][0]["loc"][:2] == ["body", field]
     assert snapshot() == before
 
 
