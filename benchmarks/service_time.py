@@ -57,7 +57,8 @@ def main() -> None:
     with TestClient(create_app(settings)) as client:
         admin, device = {"Authorization": "Bearer a"}, {"Authorization": "Bearer d"}
         site = client.post("/api/v1/sites", json={"name": "bench"}, headers=admin).json()["id"]
-        survey = [{"x": float(x), "y": float(y), "floor": 0, "rss": rss_at(x, y)} for x in range(0, 31, 2) for y in range(0, 21, 2)]
+        grid = [(float(x), float(y)) for x in range(0, 31, 2) for y in range(0, 21, 2)]
+        survey = [{"x": x, "y": y, "floor": 0, "rss": rss_at(x, y)} for x, y in grid]
         r = client.post(f"/api/v1/sites/{site}/surveys", json={"fingerprints": survey}, headers=admin)
         r.raise_for_status()
         model = client.post(f"/api/v1/sites/{site}/models", json={"algorithm": "knn"}, headers=admin).json()["id"]

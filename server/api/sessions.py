@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
@@ -16,7 +16,7 @@ from server.services.sessions import InitialPosition, SessionService
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 
-_NOT_YOURS = {404: {"description": "No such session, or it was opened with another device key."}}
+_NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such session, or it was opened with another device key."}}
 
 
 def _service(request: Request) -> SessionService:
@@ -66,7 +66,7 @@ def list_sessions(
 ) -> list[SessionOut]:
     """The sessions opened with the caller's key (an admin key sees every session), newest
     first: a phone that restarts can find the session it was feeding."""
-    return [session_out(info) for info in _service(request).list(principal, site_id, status, limit)]
+    return [session_out(info) for info in _service(request).list_sessions(principal, site_id, status, limit)]
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)
@@ -87,12 +87,12 @@ def close_session(session_id: str, request: Request, principal: Device) -> Respo
 
 def estimate_out(e: Estimate) -> EstimateOut:
     return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
-                       source=e.source)  # type: ignore[arg-type]  # source is one of the three by construction
+                       source=e.source)
 
 
 def session_out(info: SessionInfo) -> SessionOut:
     return SessionOut(
-        id=info.id, site_id=info.site_id, filter=info.filter, model_id=info.model_id, status=info.status,  # type: ignore[arg-type]
+        id=info.id, site_id=info.site_id, filter=info.filter, model_id=info.model_id, status=info.status,
         estimate=None if info.estimate is None else estimate_out(info.estimate), created_at=info.created_at,
         last_seq=info.last_seq, track_length=info.track_length,
     )

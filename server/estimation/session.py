@@ -119,7 +119,7 @@ class SessionEstimator:
         rejected: list[ScanNote] = []
         crowd: list[CrowdCandidate] = []
         applied_steps = applied_scans = 0
-        for kind, i, item in ordered:
+        for _, i, item in ordered:
             if isinstance(item, Step):
                 e = self.step(item)
                 if e is not None:

@@ -105,7 +105,7 @@ class SessionService:
                 estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init"))
             return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates)
 
-    def list(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionInfo]:
+    def list_sessions(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionInfo]:
         """The caller's sessions (every session for an admin key), newest first."""
         owner = None if principal.scope == "admin" else principal.key_hash
         with self.db.transaction() as s:
@@ -157,8 +157,8 @@ class SessionService:
                 )
             except LateInputs as late:
                 raise Invalid([
-                    {"field": f"{item.kind}s.{item.index}.t", "msg": f"t {item.t} is before the session's last applied time {late.last_t}"}
-                    for item in late.items[:100]
+                    {"field": f"{i.kind}s.{i.index}.t", "msg": f"t {i.t} is before the session's last applied time {late.last_t}"}
+                    for i in late.items[:100]
                 ]) from None
             answer = BatchAnswer(seq, outcome.estimate, outcome.applied_steps, outcome.applied_scans,
                                  outcome.skipped_scans, outcome.rejected_fixes)

@@ -328,7 +328,8 @@ BAD_OPENS = [
 @pytest.mark.parametrize("extra, code, field", BAD_OPENS)
 def test_bad_opens_are_rejected_naming_the_field(device, site, snapshot, extra, code, field):
     before = snapshot()
-    answer = device.post("/api/v1/sessions", content=_json({"site_id": site, **extra}), headers={"Content-Type": "application/json"})
+    answer = device.post("/api/v1/sessions", content=_json({"site_id": site, **extra}),
+                         headers={"Content-Type": "application/json"})
     assert answer.status_code == code, answer.text
     detail = answer.json()["detail"]
     assert any(d.get("field") == field for d in detail), detail
