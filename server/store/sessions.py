@@ -9,17 +9,18 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from datetime import UTC, datetime
+from typing import cast
 
-from sqlalchemy import Connection, bindparam, insert, select, update
+from sqlalchemy import Connection, Table, bindparam, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
 from server.estimation.types import CrowdPoint, Estimate
 from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession
 
-_SESSIONS, _SITES = TrackingSession.__table__, Site.__table__
-_BATCHES, _ESTIMATES = SessionBatch.__table__, TrackEstimate.__table__
-_FINGERPRINTS = Fingerprint.__table__
+_SESSIONS, _SITES = cast(Table, TrackingSession.__table__), cast(Table, Site.__table__)
+_BATCHES, _ESTIMATES = cast(Table, SessionBatch.__table__), cast(Table, TrackEstimate.__table__)
+_FINGERPRINTS = cast(Table, Fingerprint.__table__)
 
 _FEED_STATE = (
     select(
@@ -138,11 +139,10 @@ def track(s: Session, session_id: str) -> list[Estimate]:
 
 def close_session(s: Session, session_id: str) -> bool:
     """Close an open session; False when it was already closed."""
-    result = s.execute(
+    result = s.connection().execute(
         update(TrackingSession)
         .where(TrackingSession.id == session_id, TrackingSession.status == "open")
         .values(status="closed", closed_at=datetime.now(UTC))
-        .execution_options(synchronize_session=False)
     )
     return result.rowcount == 1
 
