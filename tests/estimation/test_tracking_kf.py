@@ -142,7 +142,7 @@ def test_fkf_releases_the_box_after_a_lost_track_and_restores_it():
     assert t.large_residuals == 2 and not t.lost and t.search_region() is not None
     t.update(fix(0.5, 0.0))  # a small residual: the count starts again
     assert t.large_residuals == 0
-    for k in range(3):
+    for _ in range(3):
         assert t.search_region() is not None
         t.update(fix(8.0, 0.0))
     assert t.lost and t.search_region() is None  # unrestricted fixes may re-acquire the track

@@ -8,7 +8,7 @@ from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalma
 from server.estimation.tracking import make_tracker
 from server.estimation.types import Fix, Step
 
-EXACT = dict(length_std_m=0.0, heading_std_deg=0.0)
+EXACT = {"length_std_m": 0.0, "heading_std_deg": 0.0}
 
 
 def test_ukf_linear_case_equals_kf_by_hand():
@@ -165,7 +165,7 @@ def test_skpf_closed_form_follows_filterpy_reference():
             items.append(Fix(*rng.normal(0, 3, 2), 0, R))
     t = make_tracker("skpf", [0.3, -0.2], P0, q=0.05)
     ref = _skpf_reference(np.array([0.3, -0.2]), P0, items, 0.05)
-    for item, (x, P) in zip(items, ref):
+    for item, (x, P) in zip(items, ref, strict=True):
         t.predict(item) if isinstance(item, Step) else t.update(item)
         np.testing.assert_allclose(t.mean, x, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(t.covariance, P, rtol=1e-9, atol=1e-9)

@@ -9,9 +9,10 @@ optional extra (UJIIndoorLoc has it; API rows do not, so it defaults to 0).
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 KINDS = ("wifi", "ble")
 
@@ -21,7 +22,7 @@ def tx_kind(tx_id: str) -> str:
     return tx_id.split(":", 1)[0]
 
 
-def _obj_array(values, n: int) -> np.ndarray:
+def _obj_array(values: Iterable | None, n: int) -> np.ndarray:
     out = np.empty(n, dtype=object)
     if values is not None:
         out[:] = list(values)
@@ -62,7 +63,7 @@ def rp_display_label(key: tuple) -> str:
     return f"{prefix}f{f}:{key[3]:.2f},{key[4]:.2f}"
 
 
-@dataclass
+@dataclass(init=False)
 class FingerprintSet:
     """Fingerprints as numpy arrays (one row each).
 
@@ -71,6 +72,9 @@ class FingerprintSet:
     label: reference-point key (None when rows are grouped by position);
     building: int (0 unless the data set has buildings); user/device: optional
     groups for splitting; t: optional times.
+
+    The constructor takes array-likes and fills ``heading_deg``, ``label`` and
+    ``building`` when they are not given, so those three are always arrays.
     """
 
     rss: np.ndarray
@@ -78,38 +82,50 @@ class FingerprintSet:
     x: np.ndarray
     y: np.ndarray
     floor: np.ndarray
-    heading_deg: np.ndarray | None = None
-    label: np.ndarray | None = None
-    building: np.ndarray | None = None
-    user: np.ndarray | None = None
-    device: np.ndarray | None = None
-    t: np.ndarray | None = None
-    meta: dict = field(default_factory=dict)
+    heading_deg: np.ndarray
+    label: np.ndarray
+    building: np.ndarray
+    user: np.ndarray | None
+    device: np.ndarray | None
+    t: np.ndarray | None
+    meta: dict
 
-    def __post_init__(self) -> None:
-        self.rss = np.asarray(self.rss, dtype=float).reshape(-1, len(self.tx_ids))
+    def __init__(
+        self,
+        rss: ArrayLike,
+        tx_ids: Iterable[str],
+        x: ArrayLike,
+        y: ArrayLike,
+        floor: ArrayLike,
+        heading_deg: ArrayLike | None = None,
+        label: Iterable | None = None,
+        building: ArrayLike | None = None,
+        user: Iterable | None = None,
+        device: Iterable | None = None,
+        t: ArrayLike | None = None,
+        meta: dict | None = None,
+    ) -> None:
+        self.tx_ids = [str(tx) for tx in tx_ids]
+        self.rss = np.asarray(rss, dtype=float).reshape(-1, len(self.tx_ids))
         n = self.rss.shape[0]
-        self.tx_ids = [str(t) for t in self.tx_ids]
         if len(set(self.tx_ids)) != len(self.tx_ids):
             raise ValueError("duplicate transmitter ids")
-        self.x = np.asarray(self.x, dtype=float).reshape(n)
-        self.y = np.asarray(self.y, dtype=float).reshape(n)
-        self.floor = np.asarray(self.floor).astype(int).reshape(n)
+        self.x = np.asarray(x, dtype=float).reshape(n)
+        self.y = np.asarray(y, dtype=float).reshape(n)
+        self.floor = np.asarray(floor).astype(int).reshape(n)
         self.heading_deg = (
-            np.full(n, np.nan) if self.heading_deg is None
-            else np.asarray(self.heading_deg, dtype=float).reshape(n)
+            np.full(n, np.nan) if heading_deg is None
+            else np.asarray(heading_deg, dtype=float).reshape(n)
         )
-        self.label = _obj_array(self.label, n)
+        self.label = _obj_array(label, n)
         self.building = (
-            np.zeros(n, dtype=int) if self.building is None
-            else np.asarray(self.building).astype(int).reshape(n)
+            np.zeros(n, dtype=int) if building is None
+            else np.asarray(building).astype(int).reshape(n)
         )
-        if self.user is not None:
-            self.user = _obj_array(self.user, n)
-        if self.device is not None:
-            self.device = _obj_array(self.device, n)
-        if self.t is not None:
-            self.t = np.asarray(self.t, dtype=float).reshape(n)
+        self.user = None if user is None else _obj_array(user, n)
+        self.device = None if device is None else _obj_array(device, n)
+        self.t = None if t is None else np.asarray(t, dtype=float).reshape(n)
+        self.meta = {} if meta is None else meta
 
     # ---- construction -------------------------------------------------------------
     @classmethod
@@ -220,7 +236,7 @@ class FingerprintSet:
         out = np.full((len(self), len(tx_ids)), np.nan)
         src = [(k, col[t]) for k, t in enumerate(tx_ids) if t in col]
         if src:
-            dst, s = zip(*src)
+            dst, s = zip(*src, strict=True)
             out[:, list(dst)] = self.rss[:, list(s)]
         return out
 
@@ -235,7 +251,7 @@ class FingerprintSet:
     def rp_keys(self) -> list[tuple]:
         return [
             rp_key(b, f, lab, x, y)
-            for b, f, lab, x, y in zip(self.building, self.floor, self.label, self.x, self.y)
+            for b, f, lab, x, y in zip(self.building, self.floor, self.label, self.x, self.y, strict=True)
         ]
 
     def reference_points(self) -> ReferencePoints:

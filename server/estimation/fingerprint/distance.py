@@ -25,7 +25,7 @@ class SquaredDistance:
         Q = np.asarray(Q, dtype=np.float32)
         cross = np.asarray((self.F @ Q.T).T, dtype=np.float64)
         d2 = (Q.astype(np.float64) ** 2).sum(axis=1)[:, None] + self.f2[None, :] - 2.0 * cross
-        if self.H is not None and Hq is not None:
+        if self.H is not None and self.h2 is not None and Hq is not None:  # h2 is None iff H is
             hq = np.asarray(Hq, dtype=np.float64) * self.heading_weight
             d2 += (hq**2).sum(axis=1)[:, None] + self.h2[None, :] - 2.0 * hq @ self.H.T
         np.maximum(d2, 0.0, out=d2)

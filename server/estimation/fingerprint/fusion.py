@@ -40,7 +40,7 @@ def fuse_fixes(fixes: Sequence[Fix], distances: Sequence[float] | None = None, s
     means = np.array([f.mean for f in fixes])
     mean = w @ means
     cov = np.zeros((2, 2))
-    for wi, f, mu in zip(w, fixes, means):
+    for wi, f, mu in zip(w, fixes, means, strict=True):
         d = mu - mean
         cov += wi * (np.asarray(f.covariance, dtype=float) + np.outer(d, d))
     top = fixes[int(np.argmax(w))]

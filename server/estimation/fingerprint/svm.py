@@ -58,7 +58,7 @@ class SVMModel(FingerprintModel):
         rng = np.random.default_rng(self.seed)
         Z = self._design(X, H)
         groups = data.row_group
-        self.search_log_ = []
+        self.search_log_: list[tuple[str, float, float, float]] = []  # (stage, C, gamma, score)
         # 1. floor classifier
         self.svc_ = None
         if len(np.unique(groups)) > 1:

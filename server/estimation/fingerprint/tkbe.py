@@ -28,7 +28,7 @@ class TKBEModel(NBCModel):
     def _fit(self, X, H, data: TrainingData) -> None:
         super()._fit(X, H, data)
         Hm = None
-        if H is not None:
+        if self.heading_stats_ is not None:  # set by NBCModel._fit exactly when H is given
             Hm = self.heading_stats_.mu
         self.rp_dist_ = SquaredDistance(self.stats_.mu, Hm, self.heading_weight_)
 

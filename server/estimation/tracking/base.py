@@ -188,7 +188,7 @@ class Tracker(ABC):
     def from_dict(cls, data: dict[str, Any]) -> Tracker:
         """Restore a tracker stored by ``to_dict`` (dispatches on ``data["filter"]``)."""
         name = data.get("filter")
-        target = TRACKERS.get(name) if cls is Tracker else cls
+        target = (TRACKERS.get(name) if isinstance(name, str) else None) if cls is Tracker else cls
         if target is None:
             raise ValueError(f"unknown tracker {name!r}")
         if name != target.name:

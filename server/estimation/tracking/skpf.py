@@ -70,6 +70,12 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
 @register
 class SKPFTracker(Tracker):
     name = "skpf"
+    # the state (mean and the upper triangle of the covariance) as plain floats; set by _set
+    _x0: float
+    _x1: float
+    _p00: float
+    _p01: float
+    _p11: float
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed=None, q: float = 0.01):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
