@@ -7,28 +7,24 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 
-from server.api.deps import Device
+from server.api.deps import Device, Sessions
 from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.domain import BatchAnswer, SessionInfo
 from server.estimation.types import Estimate, Scan, Step
 from server.schemas import BatchIn, BatchResult, EstimateOut, SessionIn, SessionOut, SkippedScan
-from server.services.sessions import InitialPosition, SessionService
+from server.services.sessions import InitialPosition
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 
 _NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such session, or it was opened with another device key."}}
 
 
-def _service(request: Request) -> SessionService:
-    return request.app.state.sessions
-
-
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionOut,
              responses={404: {"description": "Unknown site."}, 422: {"description": "Bad filter, model or initial."}})
-def open_session(body: SessionIn, request: Request, principal: Device) -> SessionOut:
+def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> SessionOut:
     init = body.initial
     initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance)
-    return session_out(_service(request).open(principal, body.site_id, body.filter, body.model_id, initial))
+    return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial))
 
 
 @router.post(
@@ -42,7 +38,7 @@ def open_session(body: SessionIn, request: Request, principal: Device) -> Sessio
         422: {"description": "Invalid step or scan (names the field), or a time before the last applied one."},
     },
 )
-async def post_batch(session_id: str, request: Request, principal: Device) -> Response:
+async def post_batch(session_id: str, request: Request, sessions: Sessions, principal: Device) -> Response:
     """Apply a batch once; a batch whose seq was already applied gets the stored answer again.
     The answer is sent as stored (plain JSON), which is also what a replay gets."""
     batch = await read_json(request, BatchIn)
@@ -52,13 +48,13 @@ async def post_batch(session_id: str, request: Request, principal: Device) -> Re
         for p in batch.steps
     ]
     scans = [Scan(c.t, dict(c.rss), c.heading_deg) for c in batch.scans]
-    answer = await run_blocking(request, _service(request).feed, principal, session_id, batch.seq, steps, scans)
+    answer = await run_blocking(request, sessions.feed, principal, session_id, batch.seq, steps, scans)
     return JSONResponse(batch_result(answer).model_dump(mode="json"))
 
 
 @router.get("", response_model=list[SessionOut])
 def list_sessions(
-    request: Request,
+    sessions: Sessions,
     principal: Device,
     site_id: Annotated[int | None, Query(description="Only this site's sessions.")] = None,
     status: Annotated[Literal["open", "closed"] | None, Query(description="Only open or only closed sessions.")] = None,
@@ -66,22 +62,22 @@ def list_sessions(
 ) -> list[SessionOut]:
     """The sessions opened with the caller's key (an admin key sees every session), newest
     first: a phone that restarts can find the session it was feeding."""
-    return [session_out(info) for info in _service(request).list_sessions(principal, site_id, status, limit)]
+    return [session_out(info) for info in sessions.list_sessions(principal, site_id, status, limit)]
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)
-def get_session(session_id: str, request: Request, principal: Device) -> SessionOut:
-    return session_out(_service(request).get(principal, session_id))
+def get_session(session_id: str, sessions: Sessions, principal: Device) -> SessionOut:
+    return session_out(sessions.get(principal, session_id))
 
 
 @router.get("/{session_id}/track", response_model=list[EstimateOut], responses=_NOT_YOURS)
-def get_track(session_id: str, request: Request, principal: Device) -> list[EstimateOut]:
-    return [estimate_out(e) for e in _service(request).track(principal, session_id)]
+def get_track(session_id: str, sessions: Sessions, principal: Device) -> list[EstimateOut]:
+    return [estimate_out(e) for e in sessions.track(principal, session_id)]
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_NOT_YOURS)
-def close_session(session_id: str, request: Request, principal: Device) -> Response:
-    _service(request).close(principal, session_id)
+def close_session(session_id: str, sessions: Sessions, principal: Device) -> Response:
+    sessions.close(principal, session_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

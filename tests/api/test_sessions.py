@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from sqlalchemy import create_engine, text
 
+from server.api.deps import session_service
 from server.errors import Invalid
 from server.estimation.types import Fix
+from server.services.sessions import SessionService
 from tests.conftest import LiveServer, make_settings
 
 FLOORS = [
@@ -57,12 +59,13 @@ class FakePositioning:
 
 @pytest.fixture
 def positioning(live_server):
+    """Sessions served with a fake fingerprint model service (through the app's dependency overrides)."""
     fake = FakePositioning({t["id"]: (t["x"], t["y"], t["floor"]) for t in TRANSMITTERS})
-    service = live_server.app.state.sessions
-    before = service.positioning
-    service.positioning = fake
+    app = live_server.app
+    service = SessionService(app.state.db, fake)
+    app.dependency_overrides[session_service] = lambda: service
     yield fake
-    service.positioning = before
+    app.dependency_overrides.pop(session_service)
 
 
 @pytest.fixture
