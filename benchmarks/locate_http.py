@@ -107,12 +107,14 @@ def main() -> None:
 
 
 def _artifact(database_url: str, model_id: int) -> bytes:
-    from server import repositories as repo
     from server.db import Database
+    from server.store.models import model_artifact
 
     db = Database(database_url)
     with db.transaction() as s:
-        blob = bytes(repo.model_artifact(s, model_id).blob)
+        artifact = model_artifact(s, model_id)
+        assert artifact is not None, f"model {model_id} has no artifact"
+        blob = artifact.blob
     db.dispose()
     return blob
 

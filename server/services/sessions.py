@@ -22,7 +22,6 @@ from typing import TypeVar
 
 from sqlalchemy import Connection
 
-from server import repositories as repo
 from server.auth import Principal
 from server.db import Database
 from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, SessionInfo
@@ -32,7 +31,9 @@ from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
+from server.store import models as model_store
 from server.store import sessions as store
+from server.store import sites as site_store
 
 #: how often a feed starts over after losing the compare-and-set to a concurrent request
 MAX_ATTEMPTS = 20
@@ -91,17 +92,17 @@ class SessionService:
         session_id = str(uuid.uuid4())
         est = SessionEstimator(filter, seed=uuid.UUID(session_id).int % 2**32)
         with self.db.transaction() as s:
-            if repo.site_settings(s, site_id) is None:
+            if site_store.site_settings(s, site_id) is None:
                 raise NotFound(f"site {site_id} does not exist")
-            if model_id is not None and repo.model_site(s, model_id) != site_id:
+            if model_id is not None and model_store.model_site(s, model_id) != site_id:
                 raise Invalid([{"field": "model_id", "msg": f"model {model_id} is not a model of site {site_id}"}])
             estimates: list[Estimate] = []
             if initial is not None:
-                levels = repo.floor_levels(s, site_id)
+                levels = site_store.floor_levels(s, site_id)
                 if levels and initial.floor not in levels:
                     raise Invalid([{"field": "initial.floor",
                                     "msg": f"floor {initial.floor} is not a floor of this site {sorted(levels)}"}])
-                walls = repo.floor_walls(s, site_id, initial.floor)
+                walls = site_store.floor_walls(s, site_id, initial.floor)
                 estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init"))
             return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates)
 
