@@ -2,67 +2,128 @@
 
     python -m client_sim demo [--phones 8] [--once]
 
-Starts ``python -m server serve`` (the server's default embedded SQLite unless
-``--database-url``), surveys the open-room scenario and trains a model over HTTP,
-walks phones through tracking sessions with every filter, and writes the report
-(error table, CDF and trajectory plots) to ``reports/demo``. Then it keeps the server
-up for you to explore (``/docs``) until Ctrl-C, or stops with ``--once``.
+Starts ``python -m server serve`` on ``127.0.0.1:8000`` with the fixed development keys
+``dev-admin-key`` / ``dev-device-key`` (``--port``, ``--admin-key``, ``--device-key`` to
+change them) on the server's default embedded SQLite unless ``--database-url``. The demo
+site (named :data:`SITE_NAME`) is surveyed and a KNN model trained on the first run only;
+later runs reuse it. Then phones walk through tracking sessions with every filter, and
+the report (error table, CDF and trajectory plots) goes to ``reports/demo``. The server
+then keeps serving until Ctrl-C (``--once`` stops it), and the demo prints commands that
+work against it as written.
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
-import secrets
+import shlex
 import signal
+import sys
 import time
 from pathlib import Path
 
-from .report import write_report
-from .runs import run_survey, run_track
-from .server_process import free_port, start_server, stop_server
+from .errors import CliError
+from .http_client import LocalizerClient
+from .report import markdown_table, write_report
+from .runs import run_survey, run_track, survey_fingerprints
+from .server_process import port_free, start_server, stop_server
+from .world import get_world
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
+SCENARIO = "open_room"
+SITE_NAME = "client_sim demo: open room"
+SCANS_PER_HEADING = 3
 
 
-async def run_demo(url: str, admin_key: str, device_key: str, phones: int, out_dir: Path, seed: int) -> Path:
-    survey = await run_survey(url, admin_key, "open_room", scans_per_heading=3, seed=seed, train="knn",
-                              site_name=f"demo open room {time.strftime('%Y-%m-%d %H:%M:%S')}")
-    model = survey.get("model") or {}
-    print(f"site {survey['site_id']}: {survey['accepted']} fingerprints at {survey['reference_points']} "
-          f"reference points; model {model.get('id')} ({model.get('algorithm')}) is {model.get('status')}")
+async def demo_site(url: str, admin_key: str, seed: int) -> dict:
+    """The site named :data:`SITE_NAME` with its active model, surveyed and trained only if need be."""
+    async with LocalizerClient(url, admin_key, key_name="admin key") as api:
+        site = next((s for s in await api.list_sites() if s["name"] == SITE_NAME), None)
+        if site is not None and site["fingerprints"]["survey"]:
+            model = next((m for m in await api.list_models(site["id"]) if m.get("active")), None)
+            if model is None:
+                model = await api.wait_model(site["id"], (await api.train_model(site["id"], "knn"))["id"])
+            return {"site_id": site["id"], "reused": True, "accepted": site["fingerprints"]["survey"],
+                    "reference_points": site["reference_points"], "model": model}
+    survey = await run_survey(url, admin_key, SCENARIO, scans_per_heading=SCANS_PER_HEADING, seed=seed, train="knn",
+                              site_name=SITE_NAME, site_id=site["id"] if site else None, progress=True)
+    return survey | {"reused": False}
+
+
+async def run_demo(url: str, admin_key: str, device_key: str, phones: int, out_dir: Path, seed: int) -> dict:
+    """Survey (or reuse) the demo site, track ``phones`` phones, write the report; returns the track result."""
+    site = await demo_site(url, admin_key, seed)
+    model = site.get("model") or {}
+    print(f"site {site['site_id']} ({'reused' if site['reused'] else 'new'}, \"{SITE_NAME}\"): {site['accepted']} "
+          f"fingerprints at {site['reference_points']} reference points; model {model.get('id')} "
+          f"({model.get('algorithm')}) is {model.get('status')}")
     if model.get("status") != "ready":
-        raise SystemExit(f"model training did not succeed: {model.get('error')}")
-    track = await run_track(url, device_key, "open_room", survey["site_id"], phones=phones, filters=FILTERS,
-                            seed=seed, progress=True)
+        raise CliError(f"model training did not succeed: {model.get('error')}")
     out_dir.mkdir(parents=True, exist_ok=True)
-    results = out_dir / "track.json"
-    results.write_text(json.dumps(track))
-    write_report([results], out_dir)
-    return out_dir / "errors.md"
+    fingerprints = survey_fingerprints(get_world(SCENARIO), SCANS_PER_HEADING, seed)
+    (out_dir / "survey.json").write_text(json.dumps({"fingerprints": fingerprints}))  # for the upload example
+    track = await run_track(url, device_key, SCENARIO, site["site_id"], phones=phones, filters=FILTERS,
+                            seed=seed, progress=True)
+    (out_dir / "track.json").write_text(json.dumps(track))
+    print(markdown_table(write_report([out_dir / "track.json"], out_dir)), end="")
+    print(f"report written to {out_dir}/ (errors.md, cdf.png, trajectory.png; track.json, survey.json)")
+    return track
+
+
+def _python() -> str:
+    """This interpreter, relative to the working directory when it lies below it."""
+    exe = Path(sys.executable)
+    try:
+        return str(exe.relative_to(Path.cwd()))
+    except ValueError:
+        return str(exe)
+
+
+def next_commands(url: str, admin_key: str, device_key: str, site_id: int, out_dir: Path) -> list[str]:
+    """Shell lines that work as written against the demo's server, from the working directory."""
+    py, q = shlex.quote(_python()), shlex.quote
+    reports = out_dir.parent
+    return [
+        f"export LOCALIZER_URL={q(url)} LOCALIZER_ADMIN_KEY={q(admin_key)} LOCALIZER_DEVICE_KEY={q(device_key)}",
+        f"{py} -m client_sim track --site-id {site_id} --phones 4 --filters ekf,pf "
+        f"--out {q(str(reports / 'track_results.json'))}",
+        f"{py} -m client_sim report {q(str(reports / 'track_results.json'))} --out {q(str(reports / 'client_sim'))}",
+        f"{py} -m client_sim crowd --scenario {SCENARIO} --rounds 1 --phones 4 --probes 10 "
+        f"--out {q(str(reports / 'crowd_results.json'))}",
+        f"{py} -m localizer_tools.upload {q(str(out_dir / 'survey.json'))} --site {site_id} --dry-run",
+        f"curl -s -H {q('Authorization: Bearer ' + admin_key)} {url}/api/v1/sites/{site_id}",
+    ]
 
 
 def _interrupt(*_) -> None:
     raise KeyboardInterrupt
 
 
-def main(args) -> int:
-    port = args.port or free_port()
-    admin_key, device_key = f"demo-admin-{secrets.token_hex(4)}", f"demo-device-{secrets.token_hex(4)}"
-    env = {"LOCALIZER_ADMIN_KEYS": admin_key, "LOCALIZER_DEVICE_KEYS": device_key}
+def main(args: argparse.Namespace) -> int:
+    if not port_free(args.port):
+        raise CliError(f"port {args.port} is in use (a server or demo still running?): stop it or pass --port")
+    env = {"LOCALIZER_ADMIN_KEYS": args.admin_key, "LOCALIZER_DEVICE_KEYS": args.device_key}
     if args.database_url:
         env["LOCALIZER_DATABASE_URL"] = args.database_url
-    server = start_server(port, env)
-    url = f"http://127.0.0.1:{port}"
-    print(f"server up at {url} (admin key {admin_key}, device key {device_key})")
+    server = start_server(args.port, env)
+    url = f"http://127.0.0.1:{args.port}"
+    print(f"server up at {url} (admin key {args.admin_key}, device key {args.device_key})", flush=True)
     try:
         signal.signal(signal.SIGTERM, _interrupt)
-        table = asyncio.run(run_demo(url, admin_key, device_key, args.phones, Path(args.out), args.seed))
-        print(table.read_text())
-        print(f"report written to {args.out}/ (errors.md, cdf.png, trajectory.png)")
-        while not args.once:
-            print(f"serving at {url}/docs — Ctrl-C to stop")
-            time.sleep(1e6)
+        out_dir = Path(args.out)
+        track = asyncio.run(run_demo(url, args.admin_key, args.device_key, args.phones, out_dir, args.seed))
+        failed = [p for p in track["phones"] if p.get("error") or p.get("failed_posts")]
+        if failed:
+            raise CliError(f"{len(failed)} of {len(track['phones'])} phones failed; see {out_dir}/track.json")
+        if not args.once:
+            print(f"\nThe server keeps serving at {url} (API docs: {url}/docs) until Ctrl-C. "
+                  "Try, in another shell in this directory:")
+            for line in next_commands(url, args.admin_key, args.device_key, track["site_id"], out_dir):
+                print("  " + line)
+            sys.stdout.flush()
+            while True:
+                time.sleep(1e6)
     except KeyboardInterrupt:
         pass
     finally:

@@ -18,9 +18,9 @@ API = "/api/v1"
 class ApiError(Exception):
     """A non-success answer; ``detail`` is the server's ``{"detail": ...}`` if any."""
 
-    def __init__(self, status: int, detail: Any, method: str, path: str):
+    def __init__(self, status: int, detail: Any, method: str, path: str, key_name: str = "key"):
         super().__init__(f"{method} {path} -> {status}: {detail}")
-        self.status, self.detail = status, detail
+        self.status, self.detail, self.key_name = status, detail, key_name
 
 
 def _retryable(exc: Exception) -> bool:
@@ -31,7 +31,8 @@ def _retryable(exc: Exception) -> bool:
 
 class LocalizerClient:
     def __init__(self, base_url: str, api_key: str, *, transport: httpx.AsyncBaseTransport | None = None,
-                 timeout: float = 30.0, max_connections: int = 200):
+                 timeout: float = 30.0, max_connections: int = 200, key_name: str = "key"):
+        self.key_name = key_name  # "admin key" / "device key", named in errors
         self.http = httpx.AsyncClient(
             base_url=base_url.rstrip("/"), transport=transport, timeout=timeout,
             headers={"Authorization": f"Bearer {api_key}"},
@@ -54,7 +55,7 @@ class LocalizerClient:
                 detail = r.json().get("detail")
             except Exception:
                 detail = r.text
-            raise ApiError(r.status_code, detail, method, path)
+            raise ApiError(r.status_code, detail, method, path, self.key_name)
         return None if r.status_code == 204 or not r.content else r.json()
 
     async def with_retries(self, method: str, path: str, json: Any = None, retries: int = 4,
@@ -72,7 +73,27 @@ class LocalizerClient:
     async def health(self) -> dict:
         return await self.request("GET", "/healthz")
 
+    async def check(self, site_id: int | None = None, admin: bool = False) -> None:
+        """Fail fast with the server's own answer: nothing listening, a refused key, an unknown site.
+
+        Admin: ``GET`` the site (or the site list). Device: ``locate`` one made-up scan on the
+        site (``409``/``422`` mean the site exists), else list the key's sessions."""
+        await self.health()
+        if admin:
+            await self.request("GET", f"{API}/sites" + (f"/{site_id}" if site_id is not None else ""))
+        elif site_id is None:
+            await self.request("GET", f"{API}/sessions", params={"limit": 1})
+        else:
+            try:
+                await self.locate(site_id, {"wifi:preflight": -60.0})
+            except ApiError as exc:
+                if exc.status not in (409, 422):
+                    raise
+
     # --- sites (admin)
+    async def list_sites(self) -> list[dict]:
+        return await self.request("GET", f"{API}/sites")
+
     async def create_site(self, payload: dict) -> dict:
         return await self.request("POST", f"{API}/sites", payload)
 
@@ -95,6 +116,9 @@ class LocalizerClient:
         if kinds:
             body["kinds"] = kinds
         return await self.request("POST", f"{API}/sites/{site_id}/models", body)
+
+    async def list_models(self, site_id) -> list[dict]:
+        return await self.request("GET", f"{API}/sites/{site_id}/models")
 
     async def get_model(self, site_id, model_id) -> dict:
         return await self.request("GET", f"{API}/sites/{site_id}/models/{model_id}")

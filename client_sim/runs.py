@@ -57,22 +57,26 @@ def survey_fingerprints(world: World, scans_per_heading: int = 5, seed: int = 0,
 
 
 async def run_survey(base_url: str, admin_key: str, scenario: World | str, *, scans_per_heading: int = 5,
-                     seed: int = 0, train: str | None = None, site_name: str | None = None, chunk: int = 2000,
-                     wait_model_s: float = 300.0, transport: httpx.AsyncBaseTransport | None = None,
+                     seed: int = 0, train: str | None = None, site_name: str | None = None, site_id: int | None = None,
+                     chunk: int = 2000, wait_model_s: float = 300.0, transport: httpx.AsyncBaseTransport | None = None,
                      progress: bool = False) -> dict:
-    """Create the scenario's site, upload its survey, optionally train a model (and wait for it)."""
+    """Create the scenario's site (or use ``site_id``), upload its survey, optionally train a model
+    (and wait for it)."""
     world = _world(scenario)
     fps = survey_fingerprints(world, scans_per_heading, seed)
-    async with LocalizerClient(base_url, admin_key, transport=transport) as api:
-        site = await api.create_site(world.site_payload(site_name))
+    async with LocalizerClient(base_url, admin_key, transport=transport, key_name="admin key") as api:
+        if site_id is None:
+            site_id = (await api.create_site(world.site_payload(site_name)))["id"]
+        else:
+            await api.get_site(site_id)  # 404 before any upload
         accepted = 0
         for start in tqdm(range(0, len(fps), chunk), desc="survey upload", disable=not progress):
-            accepted += (await api.upload_survey(site["id"], fps[start:start + chunk]))["accepted"]
-        result: dict[str, Any] = {"site_id": site["id"], "scenario": world.name, "fingerprints": len(fps),
+            accepted += (await api.upload_survey(site_id, fps[start:start + chunk]))["accepted"]
+        result: dict[str, Any] = {"site_id": site_id, "scenario": world.name, "fingerprints": len(fps),
                                   "accepted": accepted, "reference_points": len(world.reference_points)}
         if train:
-            model = await api.train_model(site["id"], train)
-            result["model"] = await api.wait_model(site["id"], model["id"], wait_model_s)
+            model = await api.train_model(site_id, train)
+            result["model"] = await api.wait_model(site_id, model["id"], wait_model_s)
     return result
 
 
@@ -150,7 +154,7 @@ async def run_track(base_url: str, device_key: str, scenario: World | str, site_
     plans = plan_phones(world, phones, list(filters), seed, wifi_hz, ble_hz)
     n_batches = sum(len(p[3].batches(interval_s)) for p in plans)
     bar = tqdm(total=n_batches, desc="batches", disable=not progress)
-    async with LocalizerClient(base_url, device_key, transport=transport) as api:
+    async with LocalizerClient(base_url, device_key, transport=transport, key_name="device key") as api:
         async def one(i, flt, r_idx, trace):
             try:
                 res = await track_phone(api, site_id, trace, flt, initial=initial, interval_s=interval_s,
@@ -197,8 +201,8 @@ async def run_crowd(base_url: str, admin_key: str, device_key: str, scenario: Wo
     """Phones without a survey walk (sessions without ``initial``) in rounds; after each round
     a model is trained on what the server crowdsourced, and cold-start fixes are probed."""
     world = _world(scenario)
-    async with LocalizerClient(base_url, admin_key, transport=transport) as admin, \
-            LocalizerClient(base_url, device_key, transport=transport) as device:
+    async with LocalizerClient(base_url, admin_key, transport=transport, key_name="admin key") as admin, \
+            LocalizerClient(base_url, device_key, transport=transport, key_name="device key") as device:
         if site_id is None:
             site_id = (await admin.create_site(world.site_payload(f"{world.name}-crowd-{seed}")))["id"]
         await admin.update_site_settings(site_id, {"crowdsourcing": True})

@@ -13,6 +13,7 @@ A world can also be loaded from / saved to JSON (:func:`load_world`, :meth:`Worl
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -250,4 +251,7 @@ def get_world(name_or_path: str) -> World:
     """A built-in scenario by name, or a world JSON file by path."""
     if name_or_path in SCENARIOS:
         return SCENARIOS[name_or_path]()
+    if not Path(name_or_path).is_file():
+        raise FileNotFoundError(errno.ENOENT, f"neither a scenario ({', '.join(SCENARIOS)}) nor a world file",
+                                name_or_path)
     return load_world(name_or_path)

@@ -1,11 +1,14 @@
 """Survey upload tool: sends a CSV or JSON survey file to a running server, in chunks.
 
-    python -m localizer_tools.upload FILE --site ID [--format csv|json|ujiindoorloc] [--dry-run]
+    python -m localizer_tools.upload FILE --site ID [--key KEY] [--format csv|json|ujiindoorloc] [--dry-run]
 
 It first validates every chunk with ``?dry_run=true`` and prints a per-row error report
 (file line, field, message); only a clean file is then stored. Each chunk carries an
 ``Idempotency-Key`` derived from the file's hash, so re-running after a crash or retrying
 a failed chunk never stores a row twice.
+
+A missing file or key, a server that does not answer, a refused key (401/403) or an
+unknown site (404) is one ``error:`` line on stderr and exit status 1 (2 for usage).
 """
 
 from __future__ import annotations
@@ -20,12 +23,35 @@ import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import httpx
 from tqdm import tqdm
 
 RETRIES = 4
+
+
+class Refused(Exception):
+    """The server refused the key (401/403) or does not know the site (404): nothing to retry."""
+
+
+def _detail(answer: httpx.Response) -> object:
+    try:
+        return answer.json().get("detail")
+    except ValueError:
+        return answer.text
+
+
+def check(client: httpx.Client, site_id: int) -> None:
+    """Fail fast, before any chunk: the server answers, takes the key and knows the site."""
+    client.get("/healthz")
+    answer = client.get(f"/api/v1/sites/{site_id}")
+    if answer.status_code in (401, 403, 404):
+        where = client.base_url
+        raise Refused({401: f"{where} refused the key (401: {_detail(answer)})",
+                       403: f"{where}: the key may not upload surveys, an admin key is needed (403: {_detail(answer)})",
+                       404: f"{where}: {_detail(answer)} (404)"}[answer.status_code])
 
 
 @dataclass
@@ -99,7 +125,7 @@ class Uploader:
 
 def describe_errors(chunk: Chunk, answer: httpx.Response) -> list[str]:
     """One line per error, with the row's position in the whole file."""
-    detail = answer.json().get("detail")
+    detail = _detail(answer)
     if not isinstance(detail, list):
         return [f"chunk {chunk.index}: HTTP {answer.status_code}: {detail}"]
     report = []
@@ -128,6 +154,7 @@ def upload(
     totals = {"accepted": 0, "skipped": 0, "new_reference_points": 0, "replayed_chunks": 0}
     started = time.perf_counter()
     with httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}, timeout=300) as client:
+        check(client, site_id)
         uploader = Uploader(client, site_id, fmt, file_hash)
         passes = ([True] if dry_run or validate_first else []) + ([] if dry_run else [False])
         for is_dry in passes:
@@ -172,12 +199,33 @@ def guess_format(path: Path) -> str:
     return "ujiindoorloc" if header.startswith("WAP001") or "LONGITUDE" in header else "csv"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Appends ``(default: X)`` to an option's help unless X is None/False or the help names it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.default is None or action.default is False or "default" in text:
+            return text
+        return super()._get_help_string(action) or text
+
+
+def _version() -> str:
+    try:
+        return version("localizer")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m localizer_tools.upload", description=__doc__.split("\n\n")[0])
-    parser.add_argument("file", type=Path)
+    parser = argparse.ArgumentParser(prog="python -m localizer_tools.upload", description=__doc__.split("\n\n")[0],
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("file", type=Path, help="survey file: CSV, JSON ({fingerprints: [...]}) or UJIIndoorLoc CSV")
     parser.add_argument("--site", type=int, required=True, help="site id")
-    parser.add_argument("--url", default=os.environ.get("LOCALIZER_URL", "http://127.0.0.1:8000"))
-    parser.add_argument("--key", default=os.environ.get("LOCALIZER_API_KEY"), help="admin key (or LOCALIZER_API_KEY)")
+    parser.add_argument("--url", default=os.environ.get("LOCALIZER_URL", "http://127.0.0.1:8000"),
+                        help="server base URL (env LOCALIZER_URL)")
+    parser.add_argument("--key", help="admin key (default: env LOCALIZER_ADMIN_KEY, else LOCALIZER_API_KEY)",
+                        default=os.environ.get("LOCALIZER_ADMIN_KEY") or os.environ.get("LOCALIZER_API_KEY"))
     parser.add_argument("--format", choices=["csv", "json", "ujiindoorloc"], help="default: from the file")
     parser.add_argument("--chunk-size", type=int, default=2000, help="rows per request")
     parser.add_argument("--dry-run", action="store_true", help="validate every row; store nothing")
@@ -185,17 +233,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if not args.key:
-        parser.error("an admin key is needed: --key or LOCALIZER_API_KEY")
+        return _fail("an admin key is needed: pass --key or set LOCALIZER_ADMIN_KEY (or LOCALIZER_API_KEY)", 2)
     if not args.file.is_file():
-        parser.error(f"no such file: {args.file}")
+        return _fail(f"{args.file}: no such file", 2)
     try:
         return upload(
             args.file, args.url, args.key, args.site, args.format or guess_format(args.file), args.chunk_size,
             dry_run=args.dry_run, validate_first=not args.no_validate, progress=not args.quiet,
         )
+    except Refused as exc:
+        return _fail(str(exc))
+    except httpx.ConnectError as exc:
+        return _fail(f"cannot connect to {args.url}: is the server running? ({exc})")
     except httpx.HTTPError as exc:
-        print(f"cannot reach {args.url}: {exc}", file=sys.stderr)
-        return 2
+        return _fail(f"{args.url}: {type(exc).__name__}: {exc}")
+
+
+def _fail(message: str, code: int = 1) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":
