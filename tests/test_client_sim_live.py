@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import re
+
+import pytest
 
 from client_sim.runs import run_survey
 from client_sim.world import get_world
-from tests.conftest import ADMIN_KEY
+from tests.conftest import ADMIN_KEY, DEVICE_KEY
 
 
 def test_survey_creates_the_scenario_site_and_stores_every_scan(admin, live_server):
@@ -23,7 +27,6 @@ def test_survey_creates_the_scenario_site_and_stores_every_scan(admin, live_serv
 
 def test_survey_then_track_phones_through_sessions(admin, live_server):
     from client_sim.runs import run_track
-    from tests.conftest import DEVICE_KEY
 
     survey = asyncio.run(run_survey(live_server.url, ADMIN_KEY, "open_room", scans_per_heading=2, seed=1, train="knn"))
     assert survey["model"]["status"] == "ready"
@@ -43,7 +46,6 @@ def test_survey_then_track_phones_through_sessions(admin, live_server):
 
 def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server):
     from client_sim.runs import run_crowd
-    from tests.conftest import DEVICE_KEY
 
     result = asyncio.run(run_crowd(live_server.url, ADMIN_KEY, DEVICE_KEY, "open_room", rounds=2, phones=3,
                                    probes=8, filter="ekf", train="knn", seed=2))
@@ -56,3 +58,74 @@ def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server
     assert all(r["sessions_ok"] == 3 for r in rounds)
     assert rounds[-1]["model"]["status"] == "ready" and rounds[-1]["model"]["active"] is True
     assert rounds[-1]["locate"]["answered"] == 8
+
+
+# ------------------------------------------------------------------ the CLI against a live server
+
+def cli(capsys, *argv: str) -> tuple[int, str, list[str]]:
+    """Run ``python -m client_sim`` in-process: exit code, stdout, stderr lines without progress bars."""
+    from client_sim.__main__ import main
+
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, [line for line in out.err.splitlines() if line.strip() and "it/s]" not in line]
+
+
+@pytest.fixture
+def open_room_site(admin) -> int:
+    return admin.post("/api/v1/sites", json=get_world("open_room").site_payload("cli")).json()["id"]
+
+
+REFUSED = "(401: unknown or revoked API key)"
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["survey", "--admin-key", "wrong"], "{url} refused the admin key " + REFUSED),
+    (["survey", "--admin-key", DEVICE_KEY],
+     "{url}: the admin key may not do this (403: this endpoint needs an admin key)"),
+    (["survey", "--admin-key", ADMIN_KEY, "--site-id", "987654"], "{url}: site 987654 does not exist (404)"),
+    (["track", "--device-key", "wrong", "--site-id", "1"], "{url} refused the device key " + REFUSED),
+    (["track", "--device-key", DEVICE_KEY, "--site-id", "987654"], "{url}: site 987654 does not exist (404)"),
+    (["crowd", "--admin-key", "wrong", "--device-key", DEVICE_KEY], "{url} refused the admin key " + REFUSED),
+    (["crowd", "--admin-key", ADMIN_KEY, "--device-key", "wrong"], "{url} refused the device key " + REFUSED),
+    (["crowd", "--admin-key", ADMIN_KEY, "--device-key", DEVICE_KEY, "--site-id", "987654"],
+     "{url}: site 987654 does not exist (404)"),
+])
+def test_cli_refused_key_or_unknown_site_is_one_line_and_exit_1(admin, live_server, capsys, argv, message):
+    code, out, err = cli(capsys, *argv, "--url", live_server.url, "--out", "/dev/null")
+    assert (code, out, err) == (1, "", ["error: " + message.format(url=live_server.url)])
+
+
+def test_cli_track_prints_its_table_and_fails_when_a_phone_failed(live_server, open_room_site, capsys, tmp_path):
+    out_file = tmp_path / "track.json"
+    code, out, err = cli(capsys, "track", "--url", live_server.url, "--device-key", DEVICE_KEY, "--site-id",
+                         str(open_room_site), "--phones", "2", "--filters", "ekf,nosuchfilter", "--out", str(out_file))
+    assert code == 1
+    assert "| open_room | ekf |" in out and "| open_room | pdr-only |" in out and "nosuchfilter" not in out
+    assert err[0] == f"wrote {out_file}"
+    assert err[1].startswith("error: 1 of 2 phones failed (phone 1: POST /api/v1/sessions -> 422")
+    assert err[1].endswith(f"details in {out_file}") and len(err) == 2
+    assert json.loads(out_file.read_text())["phones"][1]["error"]
+
+    code, out, err = cli(capsys, "track", "--url", live_server.url, "--device-key", DEVICE_KEY, "--site-id",
+                         str(open_room_site), "--phones", "1", "--filters", "ekf", "--out", str(out_file))
+    assert code == 0 and "| open_room | ekf |" in out and err == [f"wrote {out_file}"]
+
+
+def test_cli_survey_prints_the_site_and_model_and_crowd_its_rounds(admin, live_server, capsys, tmp_path):
+    code, out, _ = cli(capsys, "survey", "--url", live_server.url, "--admin-key", ADMIN_KEY, "--scans", "1",
+                       "--train", "knn", "--out", str(tmp_path / "survey.json"))
+    site_id = json.loads((tmp_path / "survey.json").read_text())["site_id"]
+    assert code == 0
+    lines = out.splitlines()
+    assert lines[0].startswith(f"site {site_id} (open_room): ") and "reference points" in lines[0]
+    assert re.fullmatch(r"model \d+ \(knn\): ready, validation mean error [\d.]+ m, active", lines[1]), lines[1]
+
+    code, out, _ = cli(capsys, "crowd", "--url", live_server.url, "--admin-key", ADMIN_KEY, "--device-key", DEVICE_KEY,
+                       "--scenario", "open_room", "--rounds", "1", "--phones", "2", "--probes", "3", "--train", "",
+                       "--out", str(tmp_path / "crowd.json"))
+    assert code == 0
+    lines = out.splitlines()
+    assert lines[1].startswith("| round | model | crowd fingerprints |")
+    assert lines[3].startswith("| bootstrap | ") and "propagation ready" in lines[3]
+    assert lines[4].startswith("| 0 | ") and "| 2/2 |" in lines[4] and len(lines) == 5

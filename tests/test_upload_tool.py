@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from localizer_tools.upload import chunks_of, guess_format, upload
-from tests.conftest import ADMIN_KEY
+from localizer_tools.upload import chunks_of, guess_format, main, upload
+from tests.conftest import ADMIN_KEY, DEVICE_KEY, free_port
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -65,3 +65,45 @@ def test_dry_run_stores_nothing(admin, live_server, site_id, tmp_path):
     assert survey_count(admin, site_id) == 0
     code, _ = run(path, live_server, site_id, "json", chunk_size=2)
     assert code == 0 and survey_count(admin, site_id) == 5
+
+
+# ------------------------------------------------------------------ the command line: one error line, non-zero exit
+
+def cli(capsys, *argv: str) -> tuple[int, list[str]]:
+    code = main(list(argv))
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+def test_cli_missing_file_or_key(capsys, monkeypatch):
+    for name in ("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"):
+        monkeypatch.delenv(name, raising=False)
+    assert cli(capsys, "nope.csv", "--site", "1", "--key", "k") == (2, ["error: nope.csv: no such file"])
+    assert cli(capsys, str(FIXTURES / "uji_tiny.csv"), "--site", "1") == (
+        2, ["error: an admin key is needed: pass --key or set LOCALIZER_ADMIN_KEY (or LOCALIZER_API_KEY)"])
+
+
+def test_cli_dead_server(capsys):
+    url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    code, err = cli(capsys, str(FIXTURES / "uji_tiny.csv"), "--site", "1", "--key", "k", "--url", url)
+    assert code == 1 and len(err) == 1 and err[0].startswith(f"error: cannot connect to {url}: is the server running?")
+
+
+@pytest.mark.parametrize("key, site, message", [
+    ("wrong", None, "{url} refused the key (401: unknown or revoked API key)"),
+    (DEVICE_KEY, None, "{url}: the key may not upload surveys, an admin key is needed (403: this endpoint needs an admin key)"),
+    (ADMIN_KEY, 987654, "{url}: site 987654 does not exist (404)"),
+])
+def test_cli_refused_key_or_unknown_site(admin, live_server, site_id, capsys, key, site, message):
+    argv = [str(FIXTURES / "uji_tiny.csv"), "--site", str(site or site_id), "--key", key, "--url", live_server.url]
+    assert cli(capsys, *argv) == (1, ["error: " + message.format(url=live_server.url)])
+    assert survey_count(admin, site_id) == 0
+
+
+def test_cli_version_and_defaults_in_help(capsys):
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out.startswith("python -m localizer_tools.upload ")
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: 2000)" in text and "(default: http" in text and "default: from the file" in text
