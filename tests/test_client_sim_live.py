@@ -129,3 +129,48 @@ def test_cli_survey_prints_the_site_and_model_and_crowd_its_rounds(admin, live_s
     assert lines[1].startswith("| round | model | crowd fingerprints |")
     assert lines[3].startswith("| bootstrap | ") and "propagation ready" in lines[3]
     assert lines[4].startswith("| 0 | ") and "| 2/2 |" in lines[4] and len(lines) == 5
+
+
+def test_demo_reuses_its_site_and_prints_commands_that_work_as_written(tmp_path):
+    """Two demo runs on one database: the second reuses the site; its printed commands run as they are."""
+    import os
+    import queue
+    import subprocess
+    import sys
+    import threading
+    from pathlib import Path
+
+    from client_sim.server_process import free_port
+
+    root = Path(__file__).resolve().parent.parent
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOCALIZER_")} | {"PYTHONUNBUFFERED": "1"}
+    demo = [sys.executable, "-m", "client_sim", "demo", "--phones", "2", "--database-url",
+            f"sqlite:///{tmp_path / 'demo.db'}", "--out", str(tmp_path / "reports" / "demo")]
+    first = subprocess.run([*demo, "--once", "--port", str(free_port())], cwd=root, env=env, capture_output=True,
+                           text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    assert '(new, "client_sim demo: open room")' in first.stdout and "| open_room | ekf |" in first.stdout
+    assert {p.name for p in (tmp_path / "reports" / "demo").iterdir()} >= {"errors.md", "cdf.png", "trajectory.png"}
+
+    serving = subprocess.Popen([*demo, "--port", str(free_port())], cwd=root, env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in serving.stdout or ()], daemon=True).start()
+    try:
+        out = []
+        while not out or not out[-1].startswith("  curl"):
+            out.append(lines.get(timeout=300))
+        text = "".join(out)
+        assert '(reused, "client_sim demo: open room")' in text
+        commands = [line.strip() for line in out if line.startswith("  ")]
+        assert commands[0].startswith("export LOCALIZER_URL=")
+        run = subprocess.run(["bash", "-ec", "\n".join(commands)], cwd=root, env=env, capture_output=True, text=True,
+                             timeout=600)
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert "| open_room | ekf |" in run.stdout and "| bootstrap |" in run.stdout  # track, report, crowd
+        assert "survey.json: valid, nothing stored" in run.stdout  # upload --dry-run
+        assert '"name":"client_sim demo: open room"' in run.stdout  # curl
+        assert (tmp_path / "reports" / "client_sim" / "trajectory.png").exists()
+    finally:
+        serving.terminate()
+        assert serving.wait(timeout=60) == 0
