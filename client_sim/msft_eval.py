@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .batches import Scan, make_batches
+from .errors import EXIT_USAGE, CliError
 from .http_client import ApiError, LocalizerClient
 from .msft import (
     UncalibratedSteps,
@@ -75,7 +76,7 @@ def select_walks(files: list[Path], spec: str | None, default: list[int]) -> lis
         elif Path(item).stem in by_stem:
             out.append(by_stem[Path(item).stem])
         else:
-            raise SystemExit(f"unknown walk {item!r}")
+            raise CliError(f"unknown walk {item!r}", EXIT_USAGE)
     return out
 
 
@@ -183,7 +184,7 @@ async def _upload_and_train(admin: LocalizerClient, site_id, rows: list[dict], a
     model = await admin.train_model(site_id, algorithm, params, kinds=kinds)
     model = await admin.wait_model(site_id, model["id"], timeout_s=600)
     if model.get("status") != "ready":
-        raise SystemExit(f"training failed: {model.get('error')}")
+        raise CliError(f"training failed: {model.get('error')}")
     return accepted, model
 
 
@@ -423,7 +424,7 @@ def main(a) -> int:
 
     files = walk_files(a.data_dir)
     if not files:
-        raise SystemExit(f"no walk files under {a.data_dir}")
+        raise CliError(f"no walk files under {a.data_dir}", EXIT_USAGE)
     if a.folds:
         splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds])
                   for k in range(a.folds)]

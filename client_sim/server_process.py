@@ -33,14 +33,14 @@ def start_server(port: int, env: dict[str, str], workers: int = 1, timeout_s: fl
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise SystemExit(f"the server exited with code {process.returncode}")
+            raise SystemExit(f"error: the server exited with code {process.returncode}")
         try:
             if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
                 return process
         except httpx.TransportError:
             time.sleep(0.2)
     process.kill()
-    raise SystemExit(f"the server did not come up within {timeout_s:.0f} s")
+    raise SystemExit(f"error: the server did not come up within {timeout_s:.0f} s")
 
 
 def stop_server(process: subprocess.Popen) -> None:

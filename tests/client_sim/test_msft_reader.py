@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from client_sim.batches import make_batches
+from client_sim.errors import CliError
 from client_sim.imu import ImuData
 from client_sim.msft import (
     UncalibratedSteps,
@@ -186,7 +187,7 @@ def test_walk_selection(tmp_path):
     assert tests == [1, 5] and 1 not in maps and len(maps) == 7
     assert select_walks(files, "0,w3.txt,w4", []) == [files[0], files[3], files[4]]
     assert select_walks(files, None, [2]) == [files[2]]
-    with pytest.raises(SystemExit):
+    with pytest.raises(CliError, match="unknown walk 'nope'"):
         select_walks(files, "nope", [])
 
 
