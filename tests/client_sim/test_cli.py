@@ -102,3 +102,14 @@ def test_the_module_entry_point_exits_without_a_traceback():
     assert run.returncode == 1
     [line] = run.stderr.splitlines()
     assert line.startswith(f"error: cannot connect to {url}: is the server running?")
+
+
+def test_demo_on_a_taken_port_is_one_line_and_exit_1(capsys):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["demo", "--port", str(port), "--once"]) == 1
+    assert one_error(capsys) == f"port {port} is in use (a server or demo still running?): stop it or pass --port"
