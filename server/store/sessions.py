@@ -134,7 +134,8 @@ def track(s: Session, session_id: str) -> list[Estimate]:
         .where(_ESTIMATES.c.session_id == session_id)
         .order_by(_ESTIMATES.c.idx)
     )
-    return [Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source) for t, x, y, floor, c, source in rows]
+    return [Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source)
+            for t, x, y, floor, c, source in rows.tuples()]
 
 
 def close_session(s: Session, session_id: str) -> bool:
@@ -153,7 +154,7 @@ def close_session(s: Session, session_id: str) -> bool:
 def feed_state(conn: Connection, session_id: str) -> FeedState | None:
     """The session's row with its site's revision, or None. A plain read (no lock):
     ``save_batch`` checks that nothing changed since."""
-    row = conn.execute(_FEED_STATE, {"session_id": session_id}).first()
+    row = conn.execute(_FEED_STATE, {"session_id": session_id}).tuples().first()
     return None if row is None else FeedState(*row)
 
 
@@ -205,7 +206,7 @@ def nearby_crowd_points(
         "site_id": site_id, "floor": floor, "x0": x - radius_m, "x1": x + radius_m, "y0": y - radius_m,
         "y1": y + radius_m,
     })
-    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in rows]
+    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in rows.tuples()]
 
 
 def add_crowd_fingerprint(

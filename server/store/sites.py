@@ -150,11 +150,11 @@ def site_context(s: Session, site_id: int) -> SiteContextRecord | None:
     site = s.execute(select(SiteRow.revision, SiteRow.settings).where(SiteRow.id == site_id)).first()
     if site is None:
         return None
-    floors = s.execute(select(FloorRow.level, FloorRow.walls).where(FloorRow.site_id == site_id)).all()
+    floors = s.execute(select(FloorRow.level, FloorRow.walls).where(FloorRow.site_id == site_id))
     return SiteContextRecord(
         revision=site.revision,
         settings=dict(site.settings or {}),
-        walls={level: _walls(walls) for level, walls in floors},
+        walls={level: _walls(walls) for level, walls in floors.tuples()},
         transmitters=tuple(positioned_transmitters(s, site_id)),
     )
 

@@ -132,7 +132,7 @@ def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
         .where(ReferencePoint.site_id == site_id)
         .order_by(ReferencePoint.floor, ReferencePoint.id)
     )
-    return [ReferencePointSummary(*row) for row in rows]
+    return [ReferencePointSummary(*row) for row in rows.tuples()]
 
 
 def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:
@@ -148,4 +148,4 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[Fingerp
     )
     if not include_crowd:
         query = query.where(Fingerprint.source == "survey")
-    return [FingerprintRecord(*row) for row in s.execute(query)]
+    return [FingerprintRecord(*row) for row in s.execute(query).tuples()]
