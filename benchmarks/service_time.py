@@ -5,8 +5,9 @@ Run from the repository root:  python benchmarks/service_time.py [--batches N] [
 The app runs in this process (Starlette's TestClient: no sockets, no client load
 generator) on a fresh SQLite database with a small synthetic site and a KNN model. It
 prints µs per request for ``GET /healthz`` (the baseline: the HTTP stack and key check
-alone), a tracking batch (5 steps and 1 scan) and a ``locate``, and each as a ratio
-against the baseline measured in the same run, so two checkouts compare by the ratios.
+alone), a tracking batch (5 steps and 1 scan) and a ``locate``, each as a ratio against
+the baseline measured in the same run, then the same batch and locate as direct calls of
+the session and positioning services (no HTTP: the service time itself).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from fastapi.testclient import TestClient  # noqa: E402
 from server import migrate  # noqa: E402
 from server.app import create_app  # noqa: E402
 from server.config import Settings  # noqa: E402
+from server.estimation.types import Scan, Step  # noqa: E402
 
 APS = {f"wifi:ap{i}": (x, y) for i, (x, y) in enumerate([(0, 0), (30, 0), (0, 20), (30, 20), (15, 10), (15, 0)])}
 
@@ -88,16 +90,33 @@ def main() -> None:
         def health(_: int) -> None:
             assert client.get("/healthz", headers=device).status_code == 200
 
+        sessions, positioning = client.app.state.sessions, client.app.state.positioning
+        principal = client.app.state.auth.bootstrap("d")
+
+        def service_batch(i: int) -> None:
+            """The session service alone: read, apply_batch, compare-and-set write (no HTTP)."""
+            seq = args.batches + i
+            t0 = seq * 5 * 0.5
+            steps = [Step(t0 + k * 0.5, 0.7, 90.0) for k in range(5)]
+            sessions.feed(principal, session, seq, steps, [Scan(t0 + 2.4, rss_at(1.0 + (3.5 * i) % 28, 10.0))])
+
+        def service_locate(i: int) -> None:
+            positioning.locate(site, rss_at(i % 30, (i * 7) % 20))
+
         locate(0)  # load the model into the cache
         health_us = _per_call_us(health, args.batches)
         batch_us = _per_call_us(batch, args.batches)
         locate_us = _per_call_us(locate, args.locates)
+        service_batch_us = _per_call_us(service_batch, args.batches)
+        service_locate_us = _per_call_us(service_locate, args.locates)
 
     base = statistics.median(health_us)
-    print(f"{'request':<10} {'median µs':>10} {'p90 µs':>10} {'× healthz':>10}")
-    for name, xs in (("healthz", health_us), ("batch", batch_us), ("locate", locate_us)):
+    print(f"{'request':<15} {'median µs':>10} {'p90 µs':>10} {'× healthz':>10}")
+    rows = (("healthz", health_us), ("batch", batch_us), ("locate", locate_us),
+            ("service batch", service_batch_us), ("service locate", service_locate_us))
+    for name, xs in rows:
         p90 = statistics.quantiles(xs, n=10)[-1]
-        print(f"{name:<10} {statistics.median(xs):>10.0f} {p90:>10.0f} {statistics.median(xs) / base:>10.2f}")
+        print(f"{name:<15} {statistics.median(xs):>10.0f} {p90:>10.0f} {statistics.median(xs) / base:>10.2f}")
 
 
 if __name__ == "__main__":
