@@ -9,7 +9,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import health, locate, models, sessions, sites, surveys
+from server.api import events, health, locate, models, sessions, sites, surveys
 from server.api.errors import InternalErrors
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(InternalErrors)  # outermost of ours: sees what the size limit lets through
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
-    for module in (health, sites, surveys, models, locate, sessions):
+    for module in (health, sites, surveys, models, locate, sessions, events):
         app.include_router(module.router)
     _document_own_bodies(app)
     return app

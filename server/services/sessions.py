@@ -121,6 +121,38 @@ class SessionService:
             _visible(store.get_session(s, session_id), principal, session_id)
             return store.track(s, session_id)
 
+    def track_after(
+        self, principal: Principal, session_id: str, after_idx: int, limit: int = 500
+    ) -> tuple[SessionInfo, list[tuple[int, Estimate]]]:
+        """The session (as the caller may see it) and its estimates after index ``after_idx``
+        (at most ``limit``), for a live stream. The session is read first: when it is closed,
+        the estimates read after it are all it will ever have (a closed session takes no batch)."""
+        with self.db.transaction() as s:
+            info = _visible(store.get_session(s, session_id), principal, session_id)
+            return info, store.estimates_after(s, session_id, after_idx, limit)
+
+    def site_tracks_after(
+        self, site_id: int, cursors: dict[str, int] | None, limit: int = 500
+    ) -> tuple[dict[str, int], list[tuple[str, int, Estimate]]]:
+        """For a site's live stream (admin): its open sessions (id → track length) and the
+        estimates after each cursor (session id → last index sent). Without cursors (a stream's
+        first read) each open session's latest estimate; with cursors a session that has none
+        starts at its first estimate, and a session that has one but is no longer open gets
+        the estimates it had left."""
+        with self.db.transaction() as s:
+            if site_store.site_settings(s, site_id) is None:
+                raise NotFound(f"site {site_id} does not exist")
+            open_ = store.open_sessions_of_site(s, site_id)
+            out: list[tuple[str, int, Estimate]] = []
+            ended = [] if cursors is None else [(sid, after) for sid, after in cursors.items() if sid not in open_]
+            for sid, after in ended:
+                out.extend((sid, idx, e) for idx, e in store.estimates_after(s, sid, after, limit))
+            for sid, length in sorted(open_.items()):
+                after = length - 2 if cursors is None else cursors.get(sid, -1)
+                if length - 1 > after:
+                    out.extend((sid, idx, e) for idx, e in store.estimates_after(s, sid, after, limit))
+            return open_, out
+
     def close(self, principal: Principal, session_id: str) -> None:
         """Closing is idempotent: closing a closed session is fine (204 again)."""
         with self.db.transaction() as s:

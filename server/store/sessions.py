@@ -138,6 +138,29 @@ def track(s: Session, session_id: str) -> list[Estimate]:
             for t, x, y, floor, c, source in rows.tuples()]
 
 
+def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:
+    """(idx, estimate) of the session's track after index ``after_idx``, at most ``limit``, in order:
+    what a live stream has not sent yet (any process may have written them)."""
+    rows = s.execute(
+        select(_ESTIMATES.c.idx, _ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor,
+               _ESTIMATES.c.covariance, _ESTIMATES.c.source)
+        .where(_ESTIMATES.c.session_id == session_id, _ESTIMATES.c.idx > after_idx)
+        .order_by(_ESTIMATES.c.idx)
+        .limit(limit)
+    )
+    return [(idx, Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source))
+            for idx, t, x, y, floor, c, source in rows.tuples()]
+
+
+def open_sessions_of_site(s: Session, site_id: int) -> dict[str, int]:
+    """session id → track length of every open session on the site."""
+    rows = s.execute(
+        select(_SESSIONS.c.id, _SESSIONS.c.track_length)
+        .where(_SESSIONS.c.site_id == site_id, _SESSIONS.c.status == "open")
+    )
+    return dict(rows.tuples().all())
+
+
 def close_session(s: Session, session_id: str) -> bool:
     """Close an open session; False when it was already closed."""
     result = s.connection().execute(
