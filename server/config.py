@@ -35,7 +35,8 @@ class Settings(BaseSettings):
     embedded_worker: bool = Field(True, description="Train models in this server process's own worker.")
     training_poll_s: float = Field(2.0, gt=0, description="How often a worker looks for queued models.")
     training_stale_after_s: float = Field(
-        1800.0, gt=0, description="A job claimed longer ago than this (its worker died) is trained again."
+        90.0, gt=0, description="A job whose worker sent no heartbeat for this long (it died) is trained again; "
+        "workers beat every sixth of it."
     )
     model_cache_size: int = Field(8, gt=0, description="Trained models kept loaded per process.")
 

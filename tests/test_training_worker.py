@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from datetime import UTC, datetime, timedelta
 
 from server.db import Database
@@ -38,4 +39,29 @@ def test_worker_marks_an_untrainable_job_failed_with_the_reason(clean_db):
         model = models.training_job(s, model_id)
         assert model.status == "failed" and "no fingerprints" in model.error
     worker.stop()
+    db.dispose()
+
+
+def test_a_live_workers_job_is_never_claimed_again_however_long_it_trains(clean_db):
+    """The worker renews its claim while the child trains (a heartbeat every sixth of the stale
+    time), so another worker never starts a second copy of a job whose worker is alive."""
+    db = Database(clean_db)
+    model_id = queued_model(db, "heartbeat")
+    worker = TrainingWorker(clean_db, poll_s=0.05, stale_after_s=0.6).start()
+    checks_while_training = 0
+    deadline = time.monotonic() + 60
+    try:
+        while time.monotonic() < deadline:
+            with db.transaction() as s:
+                status = models.training_job(s, model_id).status
+            if status == "failed":
+                break
+            if status == "training":
+                with db.transaction(rollback_only=True) as s:
+                    assert models.claim_next_model(s, datetime.now(UTC) - timedelta(seconds=0.6)) is None
+                checks_while_training += 1
+            time.sleep(0.1)
+    finally:
+        worker.stop()
+    assert status == "failed" and checks_while_training >= 5  # the spawned child took seconds, past the stale time
     db.dispose()

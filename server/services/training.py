@@ -13,7 +13,9 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing
+import signal
 import threading
+import time
 import traceback
 from dataclasses import asdict
 from datetime import UTC, datetime, timedelta
@@ -30,6 +32,10 @@ from server.store import surveys as survey_store
 
 log = logging.getLogger(__name__)
 
+#: Signals that stop a server: blocked while a training child starts, so one sent to the whole
+#: process group while it is still importing cannot make it look like a failed job.
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
 #: Below this many fingerprints a held-out split says nothing; the model is fitted without metrics.
 MIN_FINGERPRINTS_FOR_VALIDATION = 20
 
@@ -45,7 +51,13 @@ def build_model(algorithm: str, params: dict, use_heading: bool, kinds: list[str
 
 def run_training_job(database_url: str, model_id: int) -> str:
     """Train one claimed model and store the outcome; returns its final status (``gone``: the
-    model was deleted meanwhile). Runs in a child process."""
+    model was deleted meanwhile, or is no longer in training). Runs in a child process.
+
+    Ctrl-C reaches the whole process group: the child ignores SIGINT and leaves stopping to
+    its worker, which ends it and hands the job back to the queue."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)  # blocked by the worker until now
     db = Database(database_url)
     try:
         with db.transaction() as s:
@@ -63,8 +75,7 @@ def run_training_job(database_url: str, model_id: int) -> str:
             with db.transaction() as s:
                 store.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
             return "failed"
-        _store(db, site_id, model_id, blob, len(rows), metrics)
-        return "ready"
+        return "ready" if _store(db, site_id, model_id, blob, len(rows), metrics) else "gone"
     finally:
         db.dispose()
 
@@ -93,30 +104,37 @@ def _row(fp: FingerprintRecord) -> dict[str, Any]:
             "device": fp.device, "t": fp.t, "label": fp.label}
 
 
-def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None) -> None:
+def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None) -> bool:
+    """Store the outcome if the model is still in training (compare-and-set); False if it was not."""
     for activate in (True, False):
         try:
             with db.transaction() as s:
-                store.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics)
+                if not store.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics):
+                    return False
                 if activate and not store.has_active_model(s, site_id):
                     store.activate_model(s, site_id, model_id)
-            return
+            return True
         except IntegrityError:
             # Another model of the site became active at the same moment: store this one inactive.
             continue
+    return False
 
 
 class TrainingWorker:
     """Claims queued jobs and trains each in a fresh child process, one at a time.
 
     A child per job keeps the server's memory flat between jobs, and `stop` can end a
-    training in progress (the job goes back to the queue).
+    training in progress (the job goes back to the queue). While a child trains, the worker
+    renews the job's claim every ``stale_after_s / 6`` seconds (a heartbeat), so a job is
+    claimed again ``stale_after_s`` after its worker died, never while it lives. A child ended
+    by SIGTERM or SIGINT (the server is being stopped) hands its job back to the queue.
     """
 
-    def __init__(self, database_url: str, poll_s: float = 2.0, stale_after_s: float = 1800.0):
+    def __init__(self, database_url: str, poll_s: float = 2.0, stale_after_s: float = 90.0):
         self.database_url = database_url
         self.poll_s = poll_s
         self.stale_after = timedelta(seconds=stale_after_s)
+        self.heartbeat_s = max(min(stale_after_s / 6, 15.0), 0.05)
         self._db = Database(database_url)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -154,17 +172,35 @@ class TrainingWorker:
         child = self._context.Process(
             target=run_training_job, args=(self.database_url, model_id), name=f"train-model-{model_id}", daemon=True
         )
-        child.start()
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)  # inherited by the child
+        try:
+            child.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        beat = time.monotonic()
         while child.is_alive() and not self._stop.is_set():
-            child.join(timeout=0.5)
+            child.join(timeout=min(0.5, self.heartbeat_s))
+            if time.monotonic() - beat >= self.heartbeat_s:
+                beat = time.monotonic()
+                self._heartbeat(model_id)
         if child.is_alive():  # shutting down: end the fit and hand the job back to the queue
             child.terminate()
             child.join()
+        stopped = self._stop.is_set() or child.exitcode in (-signal.SIGTERM, -signal.SIGINT)
+        if child.exitcode != 0:
+            # compare-and-set from "training": a job the child finished keeps its outcome
             with self._db.transaction() as s:
-                store.requeue_model(s, model_id)
-        elif child.exitcode != 0:
+                if stopped:
+                    store.requeue_model(s, model_id)
+                else:
+                    store.fail_training(s, model_id, f"the training process died (exit code {child.exitcode})")
+
+    def _heartbeat(self, model_id: int) -> None:
+        try:
             with self._db.transaction() as s:
-                store.fail_training(s, model_id, f"the training process died (exit code {child.exitcode})")
+                store.heartbeat(s, model_id)
+        except Exception:  # a database hiccup: the next beat tries again
+            log.warning("training worker: heartbeat of model %s failed", model_id, exc_info=True)
 
     def serve_forever(self) -> None:
         """Poll for jobs until `stop` (runs in the worker thread, or in the foreground for the CLI)."""

@@ -124,20 +124,36 @@ def training_job(s: Session, model_id: int) -> ModelInfo | None:
 
 def finish_training(
     s: Session, model_id: int, blob: bytes, sha256: str, trained_on: int, metrics: dict[str, Any] | None
-) -> None:
-    """Store the artifact and mark the model ready."""
-    s.add(ModelArtifact(model_id=model_id, sha256=sha256, blob=blob))
-    s.execute(
+) -> bool:
+    """Store the artifact and mark the model ready: a compare-and-set from ``training`` (False, and
+    nothing stored, when the model is no longer in training: deleted, failed, requeued or already done)."""
+    done = s.execute(
         update(Model)
-        .where(Model.id == model_id)
+        .where(Model.id == model_id, Model.status == "training")
         .values(status="ready", trained_on=trained_on, metrics=metrics, error=None)
     )
+    if changed(done) != 1:
+        return False
+    s.add(ModelArtifact(model_id=model_id, sha256=sha256, blob=blob))
+    s.flush()
+    return True
 
 
-def requeue_model(s: Session, model_id: int) -> None:
-    """Hand a job in training back to the queue (its worker is stopping)."""
-    s.execute(update(Model).where(Model.id == model_id, Model.status == "training").values(status="queued"))
+def heartbeat(s: Session, model_id: int) -> bool:
+    """Renew the claim of a job in training (its worker is alive); False if it is no longer in training."""
+    return changed(
+        s.execute(update(Model).where(Model.id == model_id, Model.status == "training").values(claimed_at=datetime.now(UTC)))
+    ) == 1
 
 
-def fail_training(s: Session, model_id: int, error: str) -> None:
-    s.execute(update(Model).where(Model.id == model_id).values(status="failed", error=error[:2000]))
+def requeue_model(s: Session, model_id: int) -> bool:
+    """Hand a job in training back to the queue (its worker is stopping); only from ``training``."""
+    return changed(s.execute(update(Model).where(Model.id == model_id, Model.status == "training").values(status="queued"))) == 1
+
+
+def fail_training(s: Session, model_id: int, error: str) -> bool:
+    """Mark a job in training failed; a compare-and-set from ``training`` (a ready model stays ready)."""
+    failed = s.execute(
+        update(Model).where(Model.id == model_id, Model.status == "training").values(status="failed", error=error[:2000])
+    )
+    return changed(failed) == 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from datetime import UTC, datetime, timedelta
 
 import pytest
@@ -19,7 +20,9 @@ STALE = timedelta(minutes=30)
 def ready_model(db, site_id: int, blob: bytes = b"model", sha256: str = "f" * 64) -> int:
     with db.transaction() as s:
         model_id = models.add_model(s, site_id, KNN).id
-        models.finish_training(s, model_id, blob, sha256, trained_on=12, metrics={"mean_error_m": 1.5})
+    with db.transaction() as s:
+        s.execute(update(Model).where(Model.id == model_id).values(status="training", claimed_at=datetime.now(UTC)))
+        assert models.finish_training(s, model_id, blob, sha256, trained_on=12, metrics={"mean_error_m": 1.5})
     return model_id
 
 
@@ -70,6 +73,43 @@ def test_a_requeued_job_can_be_claimed_again_and_a_failure_keeps_its_reason(db, 
         failed = models.get_model(s, site_id, model_id)
         assert failed is not None and failed.status == "failed" and failed.error == "x" * 2000
         assert models.claim_next_model(s, datetime.now(UTC) - STALE) is None
+
+
+def test_status_changes_are_compare_and_set_from_training(db, site_id):
+    """Only a job in training becomes ready, failed or queued again: a ready model that a late
+    failure report (its process ended by a signal just after storing it) reaches stays ready."""
+    with db.transaction() as s:
+        queued = models.add_model(s, site_id, KNN).id
+        assert not models.finish_training(s, queued, b"m", "a" * 64, 1, None)  # never claimed
+        assert not models.fail_training(s, queued, "boom") and not models.heartbeat(s, queued)
+    model_id = ready_model(db, site_id)
+    with db.transaction() as s:
+        assert not models.fail_training(s, model_id, "the training process died (exit code -15)")
+        assert not models.requeue_model(s, model_id)
+        assert not models.finish_training(s, model_id, b"other", "b" * 64, 1, None)  # a second copy's outcome
+        assert not models.heartbeat(s, model_id)
+    with db.transaction() as s:
+        info = models.get_model(s, site_id, model_id)
+        assert info is not None and info.status == "ready" and info.error is None
+        assert models.model_artifact(s, model_id) == Artifact(model_id, "f" * 64, b"model")
+        queued_info = models.get_model(s, site_id, queued)
+        assert queued_info is not None and queued_info.status == "queued"
+
+
+def test_a_heartbeat_keeps_a_live_job_from_being_claimed_again(db, site_id):
+    with db.transaction() as s:
+        model_id = models.add_model(s, site_id, KNN).id
+        assert models.claim_next_model(s, datetime.now(UTC)) == model_id
+    stale = timedelta(seconds=0.3)
+    for _ in range(3):
+        time.sleep(0.2)
+        with db.transaction() as s:
+            assert models.heartbeat(s, model_id)
+        with db.transaction() as s:
+            assert models.claim_next_model(s, datetime.now(UTC) - stale) is None  # its worker lives
+    time.sleep(0.4)  # no heartbeat: the worker died
+    with db.transaction() as s:
+        assert models.claim_next_model(s, datetime.now(UTC) - stale) == model_id
 
 
 def test_a_trained_model_serves_with_its_artifact(db, site_id):
