@@ -47,9 +47,12 @@ STATE_VERSION = 1
 #: tracker's covariance plus the fix's, exceeds χ²(2 dof, 0.999) is an outlier (a fingerprint
 #: match in the wrong place) and moves nothing
 GATE_D2 = 13.82
-#: after this many gated fixes in a row the tracker, not the fixes, may be lost: the next fix
-#: is used whatever its distance
+#: after this many gated fixes in a row the tracker, not the fixes, may be lost (overconfident):
+#: each further fix the gate would refuse first multiplies the tracker's covariance by
+#: ``INFLATE_FACTOR`` and is tested again, so a lost tracker widens until the fixes pass
+#: (weighted by the widened covariance) instead of one fix being taken blindly
 MAX_GATED_IN_A_ROW = 3
+INFLATE_FACTOR = 2.0
 
 
 class FixSource(Protocol):
@@ -73,6 +76,9 @@ class SessionEstimator:
         self.estimate: Estimate | None = None
         #: fixes refused by the innovation gate since the last accepted one
         self.gated_in_a_row = 0
+        #: diagnostics for offline evaluation (not stored): when a list, every gated fix
+        #: appends (squared Mahalanobis distance before any inflation, accepted)
+        self.innovations: list[tuple[float, bool]] | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -210,21 +216,33 @@ class SessionEstimator:
         return self._record(scan.t, "scan"), refused
 
     def _update(self, fix: Fix) -> str | None:
-        """Update with the fix unless the innovation gate refuses it (then: why); after
-        ``MAX_GATED_IN_A_ROW`` refusals in a row the next fix is used anyway, so a lost
-        tracker is pulled back."""
+        """Update with the fix unless the innovation gate refuses it (then: why). After
+        ``MAX_GATED_IN_A_ROW`` refusals in a row, each fix the gate would refuse first grows
+        the tracker's covariance by ``INFLATE_FACTOR`` and is tested again, so a lost
+        tracker is pulled back by fixes it has learned to trust less in itself."""
         assert self.tracker is not None
         R = fix_cov(fix.covariance)
-        innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
-        S = np.asarray(self.tracker.covariance, float) + R
-        d2 = float(innovation @ np.linalg.solve(S, innovation))
-        if d2 <= GATE_D2 or self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
+        d2 = self._d2(fix, R)
+        if self.innovations is not None:
+            self.innovations.append((d2, d2 <= GATE_D2))
+        if d2 > GATE_D2 and self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
+            self.tracker.inflate(INFLATE_FACTOR)
+            d2 = self._d2(fix, R)
+        if d2 <= GATE_D2:
             self.gated_in_a_row = 0
             self.tracker.update(fix)
             return None
         self.gated_in_a_row += 1
-        return (f"fix {float(np.hypot(*innovation)):.1f} m from the estimate is an outlier "
+        distance = float(np.hypot(*(np.asarray(fix.mean, float) - self.tracker.mean)))
+        return (f"fix {distance:.1f} m from the estimate is an outlier "
                 f"(squared Mahalanobis distance {d2:.1f} > {GATE_D2})")
+
+    def _d2(self, fix: Fix, R: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the fix from the estimate under P + R."""
+        assert self.tracker is not None
+        innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
+        S = np.asarray(self.tracker.covariance, float) + R
+        return float(innovation @ np.linalg.solve(S, innovation))
 
     # -- persistence ----------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -108,20 +108,28 @@ def test_an_outlier_fix_is_refused_and_moves_nothing(name):
     assert refused is None and e.x > before[0] + 0.3 and est.gated_in_a_row == 0
 
 
-def test_after_a_run_of_refused_fixes_the_next_one_is_used():
-    """The tracker, not the fixes, may be lost: after MAX_GATED_IN_A_ROW refusals the next far
-    fix updates it as usual; the count is part of the stored state."""
-    from server.estimation.session import MAX_GATED_IN_A_ROW
+def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes():
+    """The tracker, not the fixes, may be lost: after MAX_GATED_IN_A_ROW refusals each further
+    fix the gate would refuse doubles the tracker's covariance first, so the far fixes are taken
+    once the tracker's own uncertainty explains them (never blindly); the count is stored."""
+    from server.estimation.session import GATE_D2, INFLATE_FACTOR, MAX_GATED_IN_A_ROW
 
-    est = SessionEstimator("ekf", seed=3)
+    est = SessionEstimator("ekf-xy", seed=3)
     est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
     for k in range(MAX_GATED_IN_A_ROW):
         est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
         _, refused = _scan_at(est, float(k), 30.0, 30.0)
         assert refused is not None and est.gated_in_a_row == k + 1
-    e, refused = _scan_at(est, 9.0, 30.0, 30.0)  # P = R = 1 m²: the update goes half way
+    # d² = 1800 / (P + 1) ≤ 13.82 needs P ≥ 129.3 m², i.e. 2⁸: the 8th inflation lets the fix in.
+    needed = int(np.ceil(np.log(1800.0 / GATE_D2 - 1.0) / np.log(INFLATE_FACTOR)))
+    assert needed == 8
+    for k in range(needed - 1):
+        _, refused = _scan_at(est, 10.0 + k, 30.0, 30.0)
+        assert refused is not None and est.gated_in_a_row == MAX_GATED_IN_A_ROW + k + 1
+        assert est.tracker.covariance[0, 0] == pytest.approx(INFLATE_FACTOR ** (k + 1))
+    e, refused = _scan_at(est, 20.0, 30.0, 30.0)  # P = 256 m², R = 1 m²: gain 256/257
     assert refused is None and est.gated_in_a_row == 0
-    assert (e.x, e.y) == pytest.approx((15.0, 15.0), abs=0.5)
+    assert (e.x, e.y) == pytest.approx((30.0 * 256 / 257, 30.0 * 256 / 257), abs=1e-6)
 
 
 def test_time_order_is_stable_with_steps_first_at_equal_times():

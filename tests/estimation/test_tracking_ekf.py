@@ -14,7 +14,7 @@ def test_ekf_one_step_by_hand():
     # J = [[sin h, d cos h], [cos h, −d sin h]] = [[0, 2], [1, 0]],
     # J diag(0.01, 0.01) Jᵀ = [[4·0.01, 0], [0, 0.01]] = diag(0.04, 0.01).
     # x⁻ = (0, 2), P⁻ = diag(1.04, 1.01).
-    t = make_tracker("ekf", [0, 0], np.eye(2), q=0.0)
+    t = make_tracker("ekf-xy", [0, 0], np.eye(2), q=0.0)
     t.predict(Step(0, 2.0, 0.0, length_std_m=0.1, heading_std_deg=math.degrees(0.1)))
     np.testing.assert_allclose(t.mean, [0.0, 2.0], atol=1e-12)
     np.testing.assert_allclose(t.covariance, np.diag([1.04, 1.01]), atol=1e-12)
@@ -27,8 +27,8 @@ def test_ekf_one_step_by_hand():
 
 
 def test_ekf_heading_noise_grows_cross_track_variance_with_step_length():
-    short = make_tracker("ekf", [0, 0], np.eye(2) * 0.01, q=0.0)
-    long = make_tracker("ekf", [0, 0], np.eye(2) * 0.01, q=0.0)
+    short = make_tracker("ekf-xy", [0, 0], np.eye(2) * 0.01, q=0.0)
+    long = make_tracker("ekf-xy", [0, 0], np.eye(2) * 0.01, q=0.0)
     short.predict(Step(0, 0.5, 90.0, length_std_m=0.0, heading_std_deg=10.0))
     long.predict(Step(0, 1.5, 90.0, length_std_m=0.0, heading_std_deg=10.0))
     # heading 90°: cross-track is y; variance d²σh² grows 9× from 0.5 m to 1.5 m
@@ -42,14 +42,14 @@ def test_ekf_range_update_by_hand():
     # x⁻ = (0, 0), P = I, beacon (2, 0), r = 1.5 m, σr = 0.5 m.
     # h = 2, H = (x − b)/‖x − b‖ = (−1, 0), S = 1 + 0.25 = 1.25, K = PHᵀ/S = (−0.8, 0),
     # y = 1.5 − 2 = −0.5, x⁺ = (0.4, 0), P⁺ = diag(1 − 0.8, 1) = diag(0.2, 1).
-    t = make_tracker("ekf", [0, 0], np.eye(2))
+    t = make_tracker("ekf-xy", [0, 0], np.eye(2))
     assert t.update_range([2.0, 0.0], 1.5, 0.5) is True
     np.testing.assert_allclose(t.mean, [0.4, 0.0], atol=1e-12)
     np.testing.assert_allclose(t.covariance, np.diag([0.2, 1.0]), atol=1e-12)
 
 
 def test_ekf_range_ignored_beyond_3m():
-    t = make_tracker("ekf", [0, 0], np.eye(2))
+    t = make_tracker("ekf-xy", [0, 0], np.eye(2))
     assert t.update_range([4.0, 0.0], 3.01, 0.5) is False
     np.testing.assert_array_equal(t.mean, [0.0, 0.0])
     np.testing.assert_array_equal(t.covariance, np.eye(2))
@@ -61,7 +61,7 @@ def _crossing_setup():
     # Beacon at the origin on a wall along the x axis; the prior is just north of the
     # wall with a strongly correlated P, so the linearised range update lands south.
     P = np.array([[1.0, 0.95], [0.95, 1.0]])
-    return make_tracker("ekf", [1.0, 0.2], P), [-5.0, 0.0, 5.0, 0.0]
+    return make_tracker("ekf-xy", [1.0, 0.2], P), [-5.0, 0.0, 5.0, 0.0]
 
 
 def test_ekf_wall_side_constraint_keeps_position_on_beacon_side():
@@ -75,7 +75,7 @@ def test_ekf_wall_side_constraint_keeps_position_on_beacon_side():
 
 
 def test_ekf_wall_side_explicit_side():
-    t = make_tracker("ekf", [1.0, 0.2], np.eye(2))
+    t = make_tracker("ekf-xy", [1.0, 0.2], np.eye(2))
     # The beacon faces south (right of the directed wall); the estimate is moved there.
     t.update_range([0.0, 0.0], 1.0, 0.3, on_wall={"wall": [-5, 0, 5, 0], "side": -1})
     assert t.mean[1] < 0

@@ -34,7 +34,7 @@ def _apply(t, items):
 
 
 def test_registry_has_all_trackers():
-    assert tracker_names() == ["ekf", "fkf", "kf", "pf", "skpf", "ukf"]
+    assert tracker_names() == ["ekf", "ekf-xy", "fkf", "kf", "pf", "pf-xy", "skpf", "skpf-xy", "ukf", "ukf-xy"]
     with pytest.raises(ValueError):
         make_tracker("nope", [0, 0], np.eye(2))
 

@@ -32,27 +32,27 @@ def test_crosses_walls_geometry():
 
 
 def test_pf_particles_never_end_beyond_a_wall():
-    t = make_tracker("pf", [0, 0], np.eye(2) * 0.05, walls=WALL, seed=7)
+    t = make_tracker("pf-xy", [0, 0], np.eye(2) * 0.05, walls=WALL, seed=7)
     assert t.params["n_particles"] == 1000
     for k in range(6):
         t.predict(Step(k, 0.4, 0.0))  # walking north into the wall
         assert np.all(t.particles[:, 1] < 1.0)
     assert t.mean[1] < 1.0
     # without the wall the same walk goes through it
-    free = make_tracker("pf", [0, 0], np.eye(2) * 0.05, seed=7)
+    free = make_tracker("pf-xy", [0, 0], np.eye(2) * 0.05, seed=7)
     for k in range(6):
         free.predict(Step(k, 0.4, 0.0))
     assert free.mean[1] > 2.0
 
 
 def test_pf_keeps_track_when_every_particle_would_die():
-    t = make_tracker("pf", [0, 0.9], np.eye(2) * 1e-4, walls=WALL, seed=1, q=0.0)
+    t = make_tracker("pf-xy", [0, 0.9], np.eye(2) * 1e-4, walls=WALL, seed=1, q=0.0)
     t.predict(Step(0, 1.0, 0.0, length_std_m=0.0, heading_std_deg=0.0))
     np.testing.assert_allclose(t.mean, [0.0, 1.9], atol=0.05)
 
 
 def test_pf_update_weights_are_gaussian_likelihood():
-    t = make_tracker("pf", [0, 0], np.eye(2), seed=3, resample_threshold=0.0)
+    t = make_tracker("pf-xy", [0, 0], np.eye(2), seed=3, resample_threshold=0.0)
     before = t.particles.copy()
     R = np.diag([2.0, 0.5])
     t.update(Fix(1.0, -0.5, 0, R))
@@ -63,7 +63,7 @@ def test_pf_update_weights_are_gaussian_likelihood():
 
 
 def test_pf_resamples_when_degenerate():
-    t = make_tracker("pf", [0, 0], np.eye(2), seed=3)
+    t = make_tracker("pf-xy", [0, 0], np.eye(2), seed=3)
     t.update(Fix(1.0, 0.0, 0, np.eye(2) * 0.01))
     np.testing.assert_allclose(t.weights, 1.0 / 1000)
     # exact posterior mean: 1·1/(1 + 0.01) ≈ 0.99
@@ -72,7 +72,7 @@ def test_pf_resamples_when_degenerate():
 
 
 def test_pf_range_update_gated_and_wall_side():
-    t = make_tracker("pf", [0, 0.5], np.eye(2), seed=4)
+    t = make_tracker("pf-xy", [0, 0.5], np.eye(2), seed=4)
     assert t.update_range([0, 0], 3.5, 0.5) is False
     assert t.update_range([0, 0], 0.5, 0.2, on_wall=[-5, 0, 5, 0]) is True
     assert np.all(t.particles[np.abs(t.particles[:, 0]) <= 5, 1] > 0)

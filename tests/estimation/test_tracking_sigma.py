@@ -14,7 +14,7 @@ EXACT = {"length_std_m": 0.0, "heading_std_deg": 0.0}
 def test_ukf_linear_case_equals_kf_by_hand():
     # Same numbers as the KF test: with exact steps the step model is a shift, the UT
     # is exact, so x⁻ = (1, 0), P⁻ = I + 0.5·I; fix (2, 1), R = I → x⁺ = (1.6, 0.6), P⁺ = 0.6·I.
-    t = make_tracker("ukf", [0, 0], np.eye(2), q=0.5)
+    t = make_tracker("ukf-xy", [0, 0], np.eye(2), q=0.5)
     t.predict(Step(0, 1.0, 90.0, **EXACT))
     np.testing.assert_allclose(t.mean, [1.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(t.covariance, 1.5 * np.eye(2), atol=1e-9)
@@ -30,7 +30,7 @@ def test_ukf_matches_filterpy_ukf_run_by_hand():
     ref.x = np.array([0.5, -1.0])
     ref.P = np.array([[1.0, 0.3], [0.3, 2.0]])
     ref.Q = 0.2 * np.eye(2)
-    t = make_tracker("ukf", [0.5, -1.0], [[1.0, 0.3], [0.3, 2.0]], q=0.2)
+    t = make_tracker("ukf-xy", [0.5, -1.0], [[1.0, 0.3], [0.3, 2.0]], q=0.2)
     for k in range(10):
         step = Step(k, 0.7, 360 * rng.random(), **EXACT)
         h = math.radians(step.heading_deg)
@@ -48,8 +48,8 @@ def test_ukf_captures_heading_nonlinearity():
     # Heading N(0°, (40°)²), d = 2: E[dy] = 2·exp(−σ²/2) < 2 — the EKF keeps 2, the UKF
     # shrinks it towards the Monte Carlo value.
     step = Step(0, 2.0, 0.0, length_std_m=0.0, heading_std_deg=40.0)
-    ukf = make_tracker("ukf", [0, 0], np.eye(2) * 1e-4, q=0.0)
-    ekf = make_tracker("ekf", [0, 0], np.eye(2) * 1e-4, q=0.0)
+    ukf = make_tracker("ukf-xy", [0, 0], np.eye(2) * 1e-4, q=0.0)
+    ekf = make_tracker("ekf-xy", [0, 0], np.eye(2) * 1e-4, q=0.0)
     ukf.predict(step)
     ekf.predict(step)
     rng = np.random.default_rng(0)
@@ -66,7 +66,7 @@ def test_skpf_one_step_by_hand():
     # P⁺ = 2·I − 0.5·4·0.5·I = I.
     # Likelihoods N(z; χ_i, 2I) ∝ exp(−‖z − χ_i‖²/4): a = e^−0.25, b = e^−1.25 (twice), c = e^−2.25;
     # x⁺ = (2a − 2c, a + 3b + c − b)/(a + 2b + c) = (2(a − c)/(a + 2b + c), 1).
-    t = make_tracker("skpf", [0, 0], np.eye(2), q=1.0)
+    t = make_tracker("skpf-xy", [0, 0], np.eye(2), q=1.0)
     t.predict(Step(0, 1.0, 0.0, **EXACT))
     np.testing.assert_allclose(t.mean, [0.0, 1.0], atol=1e-12)
     np.testing.assert_allclose(t.covariance, 2 * np.eye(2), atol=1e-12)
@@ -84,7 +84,7 @@ def test_skpf_covariance_matches_filterpy_kf_for_linear_model():
     ref.x = np.zeros(2)
     ref.P = np.array([[2.0, 0.4], [0.4, 1.0]])
     ref.H = np.eye(2)
-    t = make_tracker("skpf", [0, 0], ref.P.copy(), q=0.1)
+    t = make_tracker("skpf-xy", [0, 0], ref.P.copy(), q=0.1)
     for k in range(8):
         step = Step(k, 0.7, 360 * rng.random(), length_std_m=0.1, heading_std_deg=8.0)
         t.predict(step)
@@ -99,7 +99,7 @@ def test_skpf_covariance_matches_filterpy_kf_for_linear_model():
 
 def test_skpf_mean_is_likelihood_weighted_not_kalman():
     # The posterior mean stays inside the sigma-point hull, unlike the KF's K·y.
-    t = make_tracker("skpf", [0, 0], np.eye(2), q=0.0)
+    t = make_tracker("skpf-xy", [0, 0], np.eye(2), q=0.0)
     t.update(Fix(100.0, 0.0, 0, np.eye(2)))
     assert t.mean[0] <= math.sqrt(2) + 1e-12
     assert t.mean[0] > 1.4
@@ -163,7 +163,7 @@ def test_skpf_closed_form_follows_filterpy_reference():
             A = rng.normal(size=(2, 2))
             R = A @ A.T + 0.2 * np.eye(2) if k % 3 else np.diag([0.0, 2.0])  # some need the floor
             items.append(Fix(*rng.normal(0, 3, 2), 0, R))
-    t = make_tracker("skpf", [0.3, -0.2], P0, q=0.05)
+    t = make_tracker("skpf-xy", [0.3, -0.2], P0, q=0.05)
     ref = _skpf_reference(np.array([0.3, -0.2]), P0, items, 0.05)
     for item, (x, P) in zip(items, ref, strict=True):
         t.predict(item) if isinstance(item, Step) else t.update(item)

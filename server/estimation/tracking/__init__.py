@@ -4,23 +4,27 @@ Public entry points::
 
     make_tracker(name, initial_mean, initial_cov, walls=None, seed=None, **params) -> Tracker
     tracker_from_dict(d) -> Tracker          # d = tracker.to_dict()
-    tracker_names() -> ["ekf", "fkf", "kf", "pf", "skpf", "ukf"]
+    tracker_names() -> ["ekf", "ekf-xy", "fkf", "kf", "pf", "pf-xy", "skpf", "skpf-xy", "ukf", "ukf-xy"]
+
+``ekf``, ``ukf``, ``pf`` and ``skpf`` are self-calibrating (state [x, y, heading bias, step
+scale], ``selfcal``); ``<name>-xy`` is each one's two-state seed form; ``kf`` and ``fkf``
+are linear two-state filters.
 
 Each Tracker has predict(step), update(fix), update_range(beacon_xy, range_m,
 range_std_m, on_wall=None) -> bool, mean, covariance, reset(mean, cov),
-set_walls(walls), search_region(), to_dict(), from_dict().
+set_walls(walls), inflate(factor), search_region(), to_dict(), from_dict().
 """
 
 from server.estimation.tracking.base import TRACKERS, Tracker, make_tracker, tracker_from_dict, tracker_names
 from server.estimation.tracking.crowd import find_merge_target, gate, make_crowd_point, merge_points
-from server.estimation.tracking.ekf import EKFTracker
+from server.estimation.tracking.ekf import EKFTracker, EKFXYTracker
 from server.estimation.tracking.fkf import FuzzyKFTracker
 from server.estimation.tracking.floors import FloorTracker
 from server.estimation.tracking.kf import KFTracker
 from server.estimation.tracking.landmarks import LandmarkCorrector, Snap, apply_snap
-from server.estimation.tracking.pf import ParticleFilterTracker
-from server.estimation.tracking.skpf import SKPFTracker
-from server.estimation.tracking.ukf import UKFTracker
+from server.estimation.tracking.pf import ParticleFilterTracker, ParticleFilterXYTracker
+from server.estimation.tracking.skpf import SKPFTracker, SKPFXYTracker
+from server.estimation.tracking.ukf import UKFTracker, UKFXYTracker
 
 __all__ = [
     "TRACKERS",
@@ -30,9 +34,13 @@ __all__ = [
     "tracker_names",
     "KFTracker",
     "EKFTracker",
+    "EKFXYTracker",
     "UKFTracker",
+    "UKFXYTracker",
     "ParticleFilterTracker",
+    "ParticleFilterXYTracker",
     "SKPFTracker",
+    "SKPFXYTracker",
     "FuzzyKFTracker",
     "FloorTracker",
     "LandmarkCorrector",

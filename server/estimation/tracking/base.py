@@ -7,10 +7,16 @@ restores a tracker exactly: it gives the same outputs for the same future inputs
 
 Dict format (JSON-safe, plain lists and numbers)::
 
-    {"filter": "<name>", "version": 1,
+    {"filter": "<name>", "version": 2,
      "params": {...constructor keyword arguments...},
      "walls": [[x1, y1, x2, y2], ...],
      "state": {...filter specific: means, covariances, particles, RNG state...}}
+
+Version 1 (before the self-calibrating trackers) named the two-state seed filters
+``ekf``, ``ukf``, ``pf`` and ``skpf``; those names now build the augmented filters and the
+seed forms are ``ekf-xy``, ``ukf-xy``, ``pf-xy`` and ``skpf-xy``. A version-1 dict loads as
+the seed form it was written by (same state, same future outputs), so a stored session
+goes on exactly as it started.
 """
 
 from __future__ import annotations
@@ -23,7 +29,9 @@ import numpy as np
 
 from server.estimation.types import Fix, Step
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: version-1 names of the filters whose seed form has been renamed ``<name>-xy``
+RENAMED_IN_V2 = ("ekf", "ukf", "pf", "skpf")
 
 TRACKERS: dict[str, type[Tracker]] = {}
 
@@ -121,6 +129,8 @@ class Tracker(ABC):
     name: ClassVar[str] = ""
     #: whether ``update_range`` does something (otherwise it returns False)
     supports_range: ClassVar[bool] = False
+    #: whether the state carries the PDR's heading bias and step scale (``selfcal``)
+    augmented: ClassVar[bool] = False
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed: int | None = None):
         self.walls = as_walls(walls)
@@ -157,6 +167,13 @@ class Tracker(ABC):
     def reset(self, mean, cov) -> None:
         """Restart from a new Gaussian (landmark snap, floor change, re-initialisation)."""
 
+    def inflate(self, factor: float) -> None:
+        """Grow the uncertainty: the covariance times ``factor`` (≥ 1), the mean kept.
+
+        The session does this when the innovation gate has refused several fixes in a
+        row (the tracker may be overconfident rather than the fixes wrong)."""
+        self.reset(self.mean, self.covariance * float(factor))
+
     def set_walls(self, walls) -> None:
         """Replace the wall segments (e.g. after a floor change)."""
         self.walls = as_walls(walls)
@@ -187,6 +204,7 @@ class Tracker(ABC):
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Tracker:
         """Restore a tracker stored by ``to_dict`` (dispatches on ``data["filter"]``)."""
+        data = migrate_dict(data)
         name = data.get("filter")
         target = (TRACKERS.get(name) if isinstance(name, str) else None) if cls is Tracker else cls
         if target is None:
@@ -205,8 +223,18 @@ class Tracker(ABC):
         return f"<{type(self).__name__} mean=({m[0]:.2f}, {m[1]:.2f}) trace={np.trace(self.covariance):.3f}>"
 
 
+def migrate_dict(data: dict[str, Any]) -> dict[str, Any]:
+    """A version-1 dict as version 2: the renamed seed filters get their ``-xy`` name."""
+    if isinstance(data, dict) and data.get("version") == 1:
+        name = data.get("filter")
+        data = {**data, "version": FORMAT_VERSION,
+                "filter": f"{name}-xy" if name in RENAMED_IN_V2 else name}
+    return data
+
+
 def make_tracker(name: str, initial_mean, initial_cov, walls=None, seed: int | None = None, **params) -> Tracker:
-    """Build a tracker by its registered name (``kf``, ``ekf``, ``ukf``, ``pf``, ``skpf``, ``fkf``)."""
+    """Build a tracker by its registered name (``kf``, ``ekf``, ``ukf``, ``pf``, ``skpf``, ``fkf``, and the
+    two-state seed forms ``ekf-xy``, ``ukf-xy``, ``pf-xy``, ``skpf-xy``)."""
     try:
         cls = TRACKERS[name]
     except KeyError:

@@ -1,5 +1,10 @@
 """EKF: heading and step length uncertain; fix or beacon-range measurements.
 
+``ekf`` is the self-calibrating form (state [x, y, b, s], see ``selfcal``); ``ekf-xy``
+the two-state seed form described first.
+
+Seed form (``ekf-xy``, state [x, y]):
+
 Prediction: x⁻ = x + f(d, h), P⁻ = P + J·diag(σd², σh²)·Jᵀ + q·I, with J the motion
 Jacobian ∂f/∂(d, h) (see ``motion``).
 Updates (measurement models in ``measurements``):
@@ -12,9 +17,12 @@ Updates (measurement models in ``measurements``):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.tracking.measurements import MIN_RANGE_M, fix_H, fix_h, parse_on_wall, range_H, range_h, range_usable
@@ -23,8 +31,8 @@ from server.estimation.types import Fix, Step, step_displacement
 
 
 @register
-class EKFTracker(Tracker):
-    name = "ekf"
+class EKFXYTracker(Tracker):
+    name = "ekf-xy"
     supports_range = True
 
     def __init__(
@@ -98,3 +106,116 @@ class EKFTracker(Tracker):
     def _load_state(self, state: dict) -> None:
         self.ekf.x = np.asarray(state["mean"], float).reshape(2)
         self.ekf.P = np.asarray(state["cov"], float).reshape(2, 2)
+
+
+@register
+class EKFTracker(selfcal.Calibrating, Tracker):
+    """Self-calibrating EKF, state [x, y, b, s] (heading bias in radians, step scale).
+
+    Prediction: x⁻ = f(x, d, h), P⁻ = F P Fᵀ + G diag(σd², σh²) Gᵀ + diag(q, q, σb², σs²)
+    with F = ∂f/∂x and G = ∂f/∂(d, h) at the prior mean (``selfcal.jacobians``).
+    Updates: filterpy's ``ExtendedKalmanFilter.update`` with H = [I 0] for a fix, or
+    H = [(x − beacon)ᵀ/‖x − beacon‖ 0] for a beacon range (as the seed form); the bias is
+    then wrapped and the scale kept in range."""
+
+    name = "ekf"
+    supports_range = True
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        q: float = 0.01,
+        max_range_m: float = 3.0,
+        wall_margin_m: float = 0.05,
+        bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
+        bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
+        scale0_std: float = selfcal.SCALE0_STD,
+        scale_walk: float = selfcal.SCALE_WALK,
+    ):
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+        self.params = {"q": float(q), "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
+                       **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)}
+        self._Q = selfcal.process_noise(self.params["q"], self.params)
+        self.ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
+        self.ekf.x, self.ekf.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
+
+    def predict(self, step: Step) -> None:
+        x = np.asarray(self.ekf.x, float)
+        h = math.radians(step.heading_deg)
+        F, G = selfcal.jacobians(x, step.length_m, h)
+        vd, vh = selfcal.step_input_var(step)
+        self.ekf.x = selfcal.move(x, step.length_m, h)
+        self.ekf.P = selfcal.symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
+
+    @staticmethod
+    def _fix_h(x: np.ndarray) -> np.ndarray:
+        return x[:2]
+
+    @staticmethod
+    def _fix_H(x: np.ndarray) -> np.ndarray:
+        return np.eye(2, 4)
+
+    def update(self, fix: Fix) -> None:
+        R = fix_cov(fix.covariance)
+        self.ekf.update(np.asarray(fix.mean, float), self._fix_H, self._fix_h, R=R)
+        self._tidy()
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        prior = self.mean
+        constraint = parse_on_wall(on_wall, prior)
+        if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
+            self.ekf.x = np.concatenate([prior + np.array([MIN_RANGE_M, 0.0]), self.ekf.x[2:]])
+        self.ekf.update(
+            np.array([float(range_m)]),
+            lambda x, b: np.hstack([range_H(x[:2], b), np.zeros((1, 2))]),
+            lambda x, b: range_h(x[:2], b),
+            R=np.array([[float(range_std_m) ** 2]]),
+            args=(beacon,),
+            hx_args=(beacon,),
+        )
+        self._tidy()
+        if constraint is not None:
+            xy, _ = enforce_side(self.ekf.x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
+            self.ekf.x = np.concatenate([xy, self.ekf.x[2:]])
+        return True
+
+    def _tidy(self) -> None:
+        self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(4))
+        self.ekf.P = selfcal.symmetric(np.asarray(self.ekf.P, float))
+
+    @property
+    def state_mean(self) -> np.ndarray:
+        return np.asarray(self.ekf.x, float).reshape(4).copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        return np.asarray(self.ekf.P, float).copy()
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.state_mean[:2]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.state_covariance[:2, :2]
+
+    def reset(self, mean, cov) -> None:
+        self.ekf.x, self.ekf.P = selfcal.reset_position(self.state_mean, self.state_covariance, as_mean(mean),
+                                                        as_cov(cov))
+
+    def inflate(self, factor: float) -> None:
+        self.ekf.P = self.state_covariance * float(factor)
+
+    def _state(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
+                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
+
+    def _load_state(self, state: dict) -> None:
+        self.ekf.x = np.asarray(state["x"], float).reshape(4)
+        self.ekf.P = np.asarray(state["P"], float).reshape(4, 4)

@@ -1,5 +1,10 @@
 """PF: bootstrap particle filter (1,000 particles, systematic resampling, walls kill).
 
+``pf`` is the self-calibrating form: each particle also carries its own heading bias and
+step scale ([x, y, b, s], see ``selfcal``), which follow their random walks, so the
+particles that survive the fixes are those whose calibration explains the walk.
+``pf-xy`` is the two-state seed form described here.
+
 Prediction samples each particle's own step: d_i ~ N(d, σd²), h_i ~ N(h, σh²), plus a
 small isotropic jitter (q m² per step). A particle whose move crosses a wall dies
 (weight 0) and the set is resampled at once, so no particle survives on the far side
@@ -16,6 +21,7 @@ import math
 
 import numpy as np
 
+from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
 from server.estimation.tracking.measurements import parse_on_wall, range_usable
@@ -25,10 +31,12 @@ from server.estimation.types import Fix, Step
 
 
 @register
-class ParticleFilterTracker(Tracker):
-    name = "pf"
+class ParticleFilterXYTracker(Tracker):
+    name = "pf-xy"
     supports_range = True
-    particles: np.ndarray  # (n, 2), set by reset() and _load_state()
+    #: columns of a particle (2: [x, y]; 4 with the calibration)
+    dim: int = 2
+    particles: np.ndarray  # (n, dim), set by reset() and _load_state()
     weights: np.ndarray  # (n,), sum 1
 
     def __init__(
@@ -71,7 +79,7 @@ class ParticleFilterTracker(Tracker):
 
     def update(self, fix: Fix) -> None:
         R = fix_cov(fix.covariance)
-        diff = self.particles - np.asarray(fix.mean, float)
+        diff = self.particles[:, :2] - np.asarray(fix.mean, float)
         maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
         self._reweight(-0.5 * maha)
 
@@ -83,7 +91,7 @@ class ParticleFilterTracker(Tracker):
         dist = np.hypot(self.particles[:, 0] - beacon[0], self.particles[:, 1] - beacon[1])
         loglik = -0.5 * ((dist - range_m) / range_std_m) ** 2
         if constraint is not None:
-            loglik = np.where(on_wrong_side(self.particles, constraint.wall, constraint.side), -np.inf, loglik)
+            loglik = np.where(on_wrong_side(self.particles[:, :2], constraint.wall, constraint.side), -np.inf, loglik)
         return self._reweight(loglik)
 
     def _reweight(self, loglik: np.ndarray) -> bool:
@@ -106,11 +114,11 @@ class ParticleFilterTracker(Tracker):
     # -- estimate -----------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
-        return self.weights @ self.particles
+        return self.weights @ self.particles[:, :2]
 
     @property
     def covariance(self) -> np.ndarray:
-        diff = self.particles - self.mean
+        diff = self.particles[:, :2] - self.mean
         P = (diff * self.weights[:, None]).T @ diff
         return 0.5 * (P + P.T) + 1e-9 * np.eye(2)
 
@@ -119,6 +127,11 @@ class ParticleFilterTracker(Tracker):
         L = np.linalg.cholesky(as_cov(cov))
         self.particles = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
         self.weights = np.full(n, 1.0 / n)
+
+    def inflate(self, factor: float) -> None:
+        """Spread the particles about their mean by √factor (every column), weights kept."""
+        m = self.weights @ self.particles
+        self.particles = m + math.sqrt(float(factor)) * (self.particles - m)
 
     # -- persistence --------------------------------------------------------------
     def _state(self) -> dict:
@@ -132,6 +145,82 @@ class ParticleFilterTracker(Tracker):
 
     def _load_state(self, state: dict) -> None:
         n = self.params["n_particles"]
-        self.particles = np.asarray(state["particles"], float).reshape(n, 2)
+        self.particles = np.asarray(state["particles"], float).reshape(n, self.dim)
         self.weights = np.asarray(state["weights"], float).reshape(n)
         self.rng = rng_from_state(state["rng"])
+
+
+@register
+class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
+    """Self-calibrating PF: particles [x, y, b, s].
+
+    Prediction per particle: b_i += N(0, σb²), s_i += N(0, σs²) (kept in range), then its
+    step d_i = s_i·(d + σd·ε), h_i = h + b_i + σh·ε, plus the q jitter; walls kill as in the
+    seed form. At the start b_i ~ N(0, σb0²), s_i ~ N(1, σs0²). A ``reset`` (snap, floor
+    change) redraws the positions and keeps each particle's calibration. Updates weigh
+    the positions only (inherited)."""
+
+    name = "pf"
+    dim = 4
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        n_particles: int = 1000,
+        q: float = 0.01,
+        resample_threshold: float = 0.5,
+        max_range_m: float = 3.0,
+        bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
+        bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
+        scale0_std: float = selfcal.SCALE0_STD,
+        scale_walk: float = selfcal.SCALE_WALK,
+    ):
+        self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed, n_particles=n_particles, q=q,
+                         resample_threshold=resample_threshold, max_range_m=max_range_m)
+        self.params.update(self._cal)
+
+    def predict(self, step: Step) -> None:
+        n = self.params["n_particles"]
+        rng = self.rng
+        P = self.particles
+        P[:, 2] += math.radians(self._cal["bias_walk_deg"]) * rng.standard_normal(n)
+        P[:, 3] = np.clip(P[:, 3] + self._cal["scale_walk"] * rng.standard_normal(n), *selfcal.SCALE_RANGE)
+        d = P[:, 3] * (step.length_m + step.length_std_m * rng.standard_normal(n))
+        h = math.radians(step.heading_deg) + P[:, 2] + math.radians(step.heading_std_deg) * rng.standard_normal(n)
+        moved = P.copy()
+        moved[:, 0] += d * np.sin(h)
+        moved[:, 1] += d * np.cos(h)
+        moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
+        dead = crosses_walls(P[:, :2], moved[:, :2], self.walls)
+        self.particles = moved
+        if dead.any() and not dead.all():
+            self.weights[dead] = 0.0
+            self.weights /= self.weights.sum()
+            self._resample()
+
+    def reset(self, mean, cov) -> None:
+        n = self.params["n_particles"]
+        L = np.linalg.cholesky(as_cov(cov))
+        xy = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
+        old = getattr(self, "particles", None)
+        if old is None or old.shape != (n, 4):
+            cal = np.column_stack((math.radians(self._cal["bias0_std_deg"]) * self.rng.standard_normal(n),
+                                   np.clip(1.0 + self._cal["scale0_std"] * self.rng.standard_normal(n),
+                                           *selfcal.SCALE_RANGE)))
+        else:  # keep the calibration the particles learned (their weights carry over to it)
+            cal = old[systematic_resample(self.weights, float(self.rng.random())), 2:]
+        self.particles = np.column_stack((xy, cal))
+        self.weights = np.full(n, 1.0 / n)
+
+    @property
+    def state_mean(self) -> np.ndarray:
+        return self.weights @ self.particles
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        diff = self.particles - self.state_mean
+        return (diff * self.weights[:, None]).T @ diff

@@ -1,5 +1,8 @@
 """SKPF: sigma-point Kalman particle filter, as DESIGN.md gives it.
 
+``skpf`` is the self-calibrating form (``SKPFTracker`` at the end: n = 4, state
+[x, y, b, s], written with NumPy); ``skpf-xy`` the two-state seed form described first.
+
 With n = 2 (state [x, y]):
 - the 2n symmetric sigma points χ_i = x ± √n·(columns of √P), weights 1/2n, are drawn
   from the posterior (filterpy ``JulierSigmaPoints`` with κ = 0, whose centre point has
@@ -31,7 +34,8 @@ import math
 import numpy as np
 from filterpy.kalman import JulierSigmaPoints
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov_entries, register
+from server.estimation.tracking import selfcal
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, fix_cov_entries, register
 from server.estimation.types import Fix, Step
 
 N_STATE = 2
@@ -68,8 +72,8 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
 
 
 @register
-class SKPFTracker(Tracker):
-    name = "skpf"
+class SKPFXYTracker(Tracker):
+    name = "skpf-xy"
     # the state (mean and the upper triangle of the covariance) as plain floats; set by _set
     _x0: float
     _x1: float
@@ -166,3 +170,120 @@ class SKPFTracker(Tracker):
 
     def _load_state(self, state: dict) -> None:
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
+
+
+_POINTS4 = JulierSigmaPoints(selfcal.N_AUG, kappa=0.0)
+_SQRT_N4 = math.sqrt(selfcal.N_AUG)
+_W4 = 1.0 / (2 * selfcal.N_AUG)
+
+
+def symmetric_sigma_points4(x: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """The 2n = 8 points x ± √n·(columns of chol(P)), weights 1/8 each (filterpy's
+    ``JulierSigmaPoints(4, kappa=0)`` without its zero-weight centre point)."""
+    cols = _SQRT_N4 * np.linalg.cholesky(P)
+    return np.vstack((x + cols.T, x - cols.T))
+
+
+@register
+class SKPFTracker(selfcal.Calibrating, Tracker):
+    """Self-calibrating SKPF, state [x, y, b, s], the same algorithm in four dimensions.
+
+    - prediction: the 8 sigma points of the posterior go through ``selfcal.move`` (no
+      longer a rigid shift: each point has its own bias and scale); x⁻ and P⁻ are their
+      mean and spread, plus G diag(σd², σh²) Gᵀ (G at the mean) and diag(q, q, σb², σs²);
+    - update: the position's posterior mean is the seed form's, Σ w̃_i χ_i over the 2·2
+      sigma points of the position marginal (x⁻[:2], P⁻[:2, :2]) with w̃_i ∝ N(z; χ_i, R);
+      the bias and scale follow by their Gaussian regression on that correction,
+      c⁺ = c⁻ + P_cp P_pp⁻¹ (x⁺ − x⁻) — exactly what the Kalman gain does for H = [I 0]
+      (drawing all 8 sigma points instead would put 4 of them, those along b and s, on
+      the prior position and hold the posterior back by their weight); K = Pxz S⁻¹ with
+      S = P_pp + R and Pxz = P[:, :2] (the unscented transform of h(χ) = χ[:2], exact),
+      and P = P⁻ − K S Kᵀ.
+    """
+
+    name = "skpf"
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        q: float = 0.01,
+        bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
+        bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
+        scale0_std: float = selfcal.SCALE0_STD,
+        scale_walk: float = selfcal.SCALE_WALK,
+    ):
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+        self.params = {"q": float(q), **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std,
+                                                                   scale_walk)}
+        self._Q = selfcal.process_noise(self.params["q"], self.params)
+        self.x, self.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
+        self._last_weights: np.ndarray | None = None
+
+    @property
+    def last_weights(self) -> np.ndarray | None:
+        return None if self._last_weights is None else self._last_weights.copy()
+
+    def predict(self, step: Step) -> None:
+        h = math.radians(step.heading_deg)
+        chi = selfcal.move_many(symmetric_sigma_points4(self.x, self.P), step.length_m, h)
+        x = chi.mean(axis=0)
+        diff = chi - x
+        _, G = selfcal.jacobians(x, step.length_m, h)
+        vd, vh = selfcal.step_input_var(step)
+        self.x = x
+        self.P = selfcal.symmetric(_W4 * diff.T @ diff + (G * [vd, vh]) @ G.T + self._Q)
+
+    def update(self, fix: Fix) -> None:
+        R = fix_cov(fix.covariance)
+        z = np.asarray(fix.mean, float)
+        x, P = self.x, self.P
+        Ppp = P[:2, :2]
+        # Position: the seed form's rule on the position marginal (its 4 sigma points).
+        chi, _ = symmetric_sigma_points(x[:2], Ppp)
+        e = z - chi
+        lw = -0.5 * np.einsum("ij,jk,ik->i", e, np.linalg.inv(R), e)
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        self._last_weights = w
+        pos = w @ chi
+        # Calibration: its Gaussian regression on the position's correction,
+        # b, s += P_cp P_pp⁻¹ (x⁺ − x⁻) (what a Kalman gain does for H = [I 0]).
+        cal = x[2:] + P[2:, :2] @ np.linalg.solve(Ppp, pos - x[:2])
+        # Covariance: S = P_pp + R and Pxz = P[:, :2] (the UT of h(χ) = χ[:2], exact).
+        S = Ppp + R
+        K = P[:, :2] @ np.linalg.inv(S)
+        self.x = selfcal.clamp(np.concatenate([pos, cal]))
+        self.P = selfcal.symmetric(P - K @ S @ K.T)
+
+    @property
+    def state_mean(self) -> np.ndarray:
+        return self.x.copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        return self.P.copy()
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.x[:2].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.P[:2, :2].copy()
+
+    def reset(self, mean, cov) -> None:
+        self.x, self.P = selfcal.reset_position(self.x, self.P, as_mean(mean), as_cov(cov))
+
+    def inflate(self, factor: float) -> None:
+        self.P = self.P * float(factor)
+
+    def _state(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
+                "x": self.x.tolist(), "P": self.P.tolist()}
+
+    def _load_state(self, state: dict) -> None:
+        self.x = np.asarray(state["x"], float).reshape(4)
+        self.P = np.asarray(state["P"], float).reshape(4, 4)

@@ -1,6 +1,9 @@
 """UKF: unscented Kalman filter with the step's length and heading noise propagated
 through the nonlinear step model.
 
+``ukf`` is the self-calibrating form (state [x, y, b, s], see ``selfcal``; sigma points
+of the augmented [x, y, b, s, d, h]); ``ukf-xy`` the two-state seed form described here.
+
 Prediction: sigma points (filterpy MerweScaledSigmaPoints) of the augmented vector
 [x, y, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²)) are pushed through
 (x, y) + (d·sin h, d·cos h); filterpy's ``unscented_transform`` gives x⁻, P⁻ (+ q·I).
@@ -17,6 +20,7 @@ import math
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
 
+from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.tracking.measurements import fix_h, parse_on_wall, range_h, range_usable
@@ -30,8 +34,8 @@ def _fx_none(x, dt):
 
 
 @register
-class UKFTracker(Tracker):
-    name = "ukf"
+class UKFXYTracker(Tracker):
+    name = "ukf-xy"
     supports_range = True
 
     def __init__(
@@ -117,3 +121,122 @@ class UKFTracker(Tracker):
 
     def _load_state(self, state: dict) -> None:
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
+
+
+def _fix_h4(x):
+    return x[:2]
+
+
+def _range_h4(x, beacon):
+    return range_h(x[:2], beacon)
+
+
+@register
+class UKFTracker(selfcal.Calibrating, Tracker):
+    """Self-calibrating UKF, state [x, y, b, s].
+
+    Prediction: Merwe sigma points of [x, y, b, s, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²))
+    pushed through ``selfcal.move``; ``unscented_transform`` with noise diag(q, q, σb², σs²).
+    Update: filterpy's ``UnscentedKalmanFilter.update`` (dim_x = 4) with h(x) = [x, y] for a
+    fix or ‖[x, y] − beacon‖ for a range; sigma points recomputed from (x, P) each time."""
+
+    name = "ukf"
+    supports_range = True
+
+    def __init__(
+        self,
+        initial_mean,
+        initial_cov,
+        walls=None,
+        seed=None,
+        q: float = 0.01,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        max_range_m: float = 3.0,
+        wall_margin_m: float = 0.05,
+        bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
+        bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
+        scale0_std: float = selfcal.SCALE0_STD,
+        scale_walk: float = selfcal.SCALE_WALK,
+    ):
+        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+        self.params = {
+            "q": float(q), "alpha": float(alpha), "beta": float(beta), "kappa": float(kappa),
+            "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
+            **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
+        }
+        self._Q = selfcal.process_noise(self.params["q"], self.params)
+        self._aug_points = MerweScaledSigmaPoints(6, alpha=alpha, beta=beta, kappa=kappa)
+        points = MerweScaledSigmaPoints(4, alpha=alpha, beta=beta, kappa=kappa)
+        self.ukf = UnscentedKalmanFilter(dim_x=4, dim_z=2, dt=1.0, hx=_fix_h4, fx=_fx_none, points=points)
+        x, P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
+        self._set(x, P)
+
+    def predict(self, step: Step) -> None:
+        x_aug = np.concatenate([self.ukf.x, [step.length_m, math.radians(step.heading_deg)]])
+        P_aug = np.zeros((6, 6))
+        P_aug[:4, :4] = self.ukf.P
+        vd, vh = selfcal.step_input_var(step)
+        P_aug[4, 4] = max(vd, _MIN_VAR)
+        P_aug[5, 5] = max(vh, _MIN_VAR)
+        sig = self._aug_points.sigma_points(x_aug, P_aug)
+        moved = selfcal.move_many(sig[:, :4], sig[:, 4], sig[:, 5])
+        x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self._Q)
+        self._set(x, P)
+
+    def _prepare_update(self) -> None:
+        self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
+
+    def update(self, fix: Fix) -> None:
+        self._prepare_update()
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=_fix_h4)
+        self._set(self.ukf.x, self.ukf.P)
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        constraint = parse_on_wall(on_wall, self.mean)
+        self._prepare_update()
+        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=_range_h4,
+                        beacon=beacon)
+        x = np.asarray(self.ukf.x, float).copy()
+        if constraint is not None:
+            x[:2], _ = enforce_side(x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
+        self._set(x, self.ukf.P)
+        return True
+
+    def _set(self, x, P) -> None:
+        self.ukf.x = selfcal.clamp(np.asarray(x, float).reshape(4))
+        self.ukf.P = selfcal.symmetric(np.asarray(P, float))
+
+    @property
+    def state_mean(self) -> np.ndarray:
+        return self.ukf.x.copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        return self.ukf.P.copy()
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.ukf.x[:2].copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.ukf.P[:2, :2].copy()
+
+    def reset(self, mean, cov) -> None:
+        self._set(*selfcal.reset_position(self.ukf.x, self.ukf.P, as_mean(mean), as_cov(cov)))
+
+    def inflate(self, factor: float) -> None:
+        self._set(self.ukf.x, self.ukf.P * float(factor))
+
+    def _state(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
+                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
+
+    def _load_state(self, state: dict) -> None:
+        self.ukf.x = np.asarray(state["x"], float).reshape(4)
+        self.ukf.P = np.asarray(state["P"], float).reshape(4, 4)
