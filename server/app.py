@@ -9,7 +9,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from server.api import events, health, locate, models, sessions, sites, surveys
+from server.api import dashboard, events, health, locate, models, sessions, sites, surveys
 from server.api.errors import InternalErrors
 from server.api.limits import BodySizeLimit
 from server.auth import Authenticator
@@ -60,6 +60,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="1.0.0",
         summary="Indoor positioning: RSS fingerprint surveys, models, locate and tracking sessions.",
         lifespan=lifespan,
+        docs_url=None,  # served offline by server.api.dashboard
+        redoc_url=None,
     )
     db = Database(settings.database_url)
     app.state.settings = settings
@@ -79,6 +81,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
     for module in (health, sites, surveys, models, locate, sessions, events):
         app.include_router(module.router)
+    dashboard.install(app)  # the dashboard at / and the docs, with their assets (no CDN)
     _document_own_bodies(app)
     return app
 

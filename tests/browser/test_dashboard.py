@@ -1,0 +1,156 @@
+"""The dashboard in a real headless Chromium against the live test server: it loads without a
+console error, asks for the key once, draws the site's walls, reference points and
+transmitters, and a session a client posts appears on the map and moves; a device key sees
+only its own sessions; the API docs pages load their assets from the app."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ADMIN_KEY, DEVICE_KEY
+
+pytestmark = pytest.mark.browser
+
+SITE = {
+    "name": "browser lab",
+    "floors": [
+        {"level": 0, "name": "ground", "width_m": 20, "height_m": 12,
+         "walls": [[0, 0, 20, 0], [20, 0, 20, 12], [20, 12, 0, 12], [0, 12, 0, 0], [10, 0, 10, 7]]},
+        {"level": 1, "walls": []},
+    ],
+    "transmitters": [
+        {"id": "wifi:aa:bb:cc:dd:ee:01", "kind": "wifi", "floor": 0, "x": 2.0, "y": 2.0},
+        {"id": "wifi:aa:bb:cc:dd:ee:02", "kind": "wifi", "floor": 0, "x": 18.0, "y": 10.0},
+        {"id": "ble:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:1", "kind": "ble", "floor": 0, "x": 15.0, "y": 3.0},
+    ],
+}
+RPS = [(2.0, 3.0), (5.0, 3.0), (8.0, 3.0), (14.0, 9.0), (17.0, 9.0)]
+
+
+@pytest.fixture
+def site(admin) -> int:
+    answer = admin.post("/api/v1/sites", json=SITE)
+    assert answer.status_code == 201, answer.text
+    sid = answer.json()["id"]
+    fps = [
+        {"x": x, "y": y, "floor": 0, "label": f"rp{i}", "rss": {"wifi:aa:bb:cc:dd:ee:01": -40.0 - 2 * x - k}}
+        for i, (x, y) in enumerate(RPS) for k in range(i + 1)
+    ]
+    answer = admin.post(f"/api/v1/sites/{sid}/surveys", json={"fingerprints": fps})
+    assert answer.status_code in (200, 201), answer.text
+    return sid
+
+
+@pytest.fixture(autouse=True)
+def fast_streams(live_server):
+    state = live_server.app.state
+    state.events_poll_s = 0.05
+    yield
+    del state.events_poll_s
+
+
+def login(page, url: str, key: str) -> None:
+    page.goto(url + "/")
+    page.fill("#key", key)
+    page.click("#login-form button[type=submit]")
+    page.wait_for_selector("#app:not([hidden])")
+
+
+def feed(client, sid: str, seq: int, n: int, t0: float) -> None:
+    steps = [{"t": t0 + 0.5 * i, "length_m": 0.7, "heading_deg": 90.0} for i in range(n)]
+    answer = client.post(f"/api/v1/sessions/{sid}/batches", json={"seq": seq, "steps": steps})
+    assert answer.status_code == 200, answer.text
+
+
+def position(page, sid: str) -> tuple[float, float]:
+    dot = page.locator(f"circle.pos[data-session='{sid}']")
+    return float(dot.get_attribute("cx")), float(dot.get_attribute("cy"))
+
+
+def test_dashboard_map_and_live_session(page, live_server, site, device):
+    login(page, live_server.url, ADMIN_KEY)
+    assert page.text_content("#scope") == "admin key"
+    page.wait_for_selector("circle.rp")
+    assert page.locator("circle.rp").count() == len(RPS)
+    labels = {page.locator("circle.rp").nth(i).get_attribute("data-label") for i in range(len(RPS))}
+    assert labels == {f"rp{i}" for i in range(len(RPS))}
+    # reference points are sized by their fingerprint counts (rp4 has 5, rp0 has 1)
+    radius = {c.get_attribute("data-label"): float(c.get_attribute("r")) for c in page.locator("circle.rp").all()}
+    assert radius["rp4"] > radius["rp0"]
+    assert page.locator("line.wall").count() == 5
+    assert page.locator(".tx.wifi").count() == 2 and page.locator(".tx.ble").count() == 1
+    assert "1 · " not in page.text_content("#floor") or page.locator("#floor option").count() == 2
+
+    # a session posted by a client appears live, with its covariance ellipse, and moves
+    body = {"site_id": site, "filter": "kf", "initial": {"x": 3.0, "y": 5.0, "floor": 0}}
+    sid = device.post("/api/v1/sessions", json=body).json()["id"]
+    page.wait_for_selector(f"circle.pos[data-session='{sid}']", timeout=10_000)
+    assert page.locator(f"g.session[data-session='{sid}'] ellipse").count() == 1
+    x0, y0 = position(page, sid)
+    assert (x0, y0) == pytest.approx((3.0, -5.0))  # SVG y is north flipped
+    feed(device, sid, 0, 4, 0.0)
+    page.wait_for_function(
+        f"document.querySelector(\"circle.pos[data-session='{sid}']\").dataset.idx === '4'", timeout=10_000
+    )
+    x1, y1 = position(page, sid)
+    assert x1 == pytest.approx(3.0 + 4 * 0.7, abs=1e-6) and y1 == pytest.approx(-5.0, abs=1e-6)  # heading 90 = east
+    page.wait_for_selector(f"#sessions li[data-session='{sid}']")
+
+    # closed: the list says so, and clicking it replays the stored track
+    device.delete(f"/api/v1/sessions/{sid}")
+    page.click("#refresh-sessions")
+    page.wait_for_selector(f"#sessions li[data-session='{sid}'] >> text=closed")
+    page.click(f"#sessions li[data-session='{sid}']")
+    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    assert position(page, sid) == pytest.approx((x1, y1))
+
+    shot = os.environ.get("LOCALIZER_DASHBOARD_SCREENSHOT")
+    if shot:
+        Path(shot).parent.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=shot)
+    assert page.errors == []
+
+
+def test_dashboard_device_key_sees_own_sessions(page, live_server, site, device, admin):
+    admin_sid = admin.post("/api/v1/sessions", json={"site_id": site, "filter": "kf"}).json()["id"]
+    body = {"site_id": site, "filter": "kf", "initial": {"x": 1.0, "y": 1.0, "floor": 0}}
+    sid = device.post("/api/v1/sessions", json=body).json()["id"]
+    login(page, live_server.url, DEVICE_KEY)
+    assert page.text_content("#scope") == "device key"
+    assert page.locator("#sites-panel").is_hidden() and page.locator("#models-panel").is_hidden()
+    page.wait_for_selector(f"circle.pos[data-session='{sid}']", timeout=10_000)
+    feed(device, sid, 0, 2, 0.0)
+    page.wait_for_function(
+        f"document.querySelector(\"circle.pos[data-session='{sid}']\").dataset.idx === '2'", timeout=10_000
+    )
+    assert page.locator(f"#sessions li[data-session='{admin_sid}']").count() == 0
+    # the key is kept for the tab: a reload does not ask again
+    page.reload()
+    page.wait_for_selector("#app:not([hidden])")
+    assert page.locator("#login").is_hidden()
+    assert page.errors == []
+
+
+def test_wrong_key_is_asked_again(page, live_server, clean_db):
+    page.goto(live_server.url + "/")
+    page.fill("#key", "not-a-key")
+    page.click("#login-form button[type=submit]")
+    page.wait_for_function("document.getElementById('login-error').textContent.includes('refused')")
+    assert page.locator("#app").is_hidden()
+    assert all("401" in e for e in page.errors)  # the refused request itself, nothing else
+
+
+@pytest.mark.parametrize("path", ["/docs", "/redoc"])
+def test_docs_render_offline(page, live_server, path):
+    """Swagger UI and ReDoc come from the app; every request the page makes is answered by it
+    (ReDoc's CDN logo is refused by the page's content security policy)."""
+    requests: list[str] = []
+    page.on("requestfinished", lambda r: requests.append(r.url))
+    page.goto(live_server.url + path)
+    page.wait_for_selector(".swagger-ui .info .title" if path == "/docs" else "redoc-wrap, .api-content", timeout=20_000)
+    assert "Localizer" in page.content()
+    outside = [u for u in requests if not u.startswith((live_server.url, "data:", "blob:"))]
+    assert requests and not outside, outside
