@@ -15,6 +15,9 @@ from pydantic import (
     model_validator,
 )
 
+from server.estimation.fingerprint.registry import ALGORITHMS
+from server.estimation.tracking import tracker_names
+
 #: ``wifi:<bssid>`` / ``ble:<uuid>:<major>:<minor>``, or a data set's name for a transmitter.
 TX_ID_PATTERN = (
     r"^(?:wifi:(?:[0-9a-f]{2}(?::[0-9a-f]{2}){5}|[a-z0-9._-]{1,64})"
@@ -23,12 +26,27 @@ TX_ID_PATTERN = (
 )
 RSS_MIN_DBM, RSS_MAX_DBM = -130.0, 0.0
 
-TxId = Annotated[str, StringConstraints(pattern=TX_ID_PATTERN)]
-Dbm = Annotated[float, Field(ge=RSS_MIN_DBM, le=RSS_MAX_DBM, allow_inf_nan=False)]
+TxId = Annotated[str, StringConstraints(pattern=TX_ID_PATTERN), Field(
+    description="Transmitter id: `wifi:<bssid, lower case>` or `ble:<uuid, lower case>:<major>:<minor>`; "
+    "where a data set names its transmitters, `wifi:<name>` / `ble:<name>` with the name in `[a-z0-9._-]`."
+)]
+Dbm = Annotated[float, Field(ge=RSS_MIN_DBM, le=RSS_MAX_DBM, allow_inf_nan=False,
+                             description="Received signal strength in dBm, [-130, 0].")]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
-Seconds = Annotated[float, Field(allow_inf_nan=False)]
-Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360, le=360)]
-Level = Annotated[int, Field(ge=-20, le=200)]
+Seconds = Annotated[float, Field(allow_inf_nan=False,
+                                 description="Time in seconds (float, any epoch, monotonic within one session).")]
+Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360, le=360, description=(
+    "Heading in degrees clockwise from the site's +y axis (0 = +y/north, 90 = +x/east): "
+    "a step of length d moves by (d·sin h, d·cos h)."))]
+Level = Annotated[int, Field(ge=-20, le=200, description="Floor level, an integer (0 = ground).")]
+#: where a field is a position in the site frame
+X_DOC = "Metres east in the site frame (x axis; origin chosen by the site)."
+Y_DOC = "Metres north in the site frame (y axis)."
+COV_DOC = "2×2 row-major covariance [[sxx, sxy], [sxy, syy]] of (x, y), in m²."
+
+#: the names a session's ``filter`` and a model's ``algorithm`` may take, published as enums in the schema
+FILTERS: list[str] = list(tracker_names())
+ALGORITHM_NAMES: list[str] = sorted(ALGORITHMS)
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
 
 
@@ -54,15 +72,16 @@ class FloorIn(Strict):
     name: Name | None = None
     width_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
     height_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
-    walls: Annotated[list[tuple[Metres, Metres, Metres, Metres]], Field(max_length=100_000)] = []
+    walls: Annotated[list[tuple[Metres, Metres, Metres, Metres]], Field(
+        max_length=100_000, description="Wall segments [x1, y1, x2, y2] in site metres.")] = []
 
 
 class TransmitterIn(Strict):
     id: TxId
-    kind: Literal["wifi", "ble"]
+    kind: Literal["wifi", "ble"] = Field(description="`wifi` (access point) or `ble` (iBeacon); the id's prefix.")
     floor: Level | None = None
-    x: Metres | None = None
-    y: Metres | None = None
+    x: Metres | None = Field(None, description=X_DOC)
+    y: Metres | None = Field(None, description=Y_DOC)
     tx_power_dbm: Annotated[float, Field(ge=-130, le=30)] | None = None
     path_loss_exponent: Annotated[float, Field(gt=0, le=10)] | None = None
 
@@ -161,10 +180,10 @@ class ReferencePointOut(BaseModel):
 
 
 class FingerprintIn(Strict):
-    x: Metres
-    y: Metres
+    x: Metres = Field(description=X_DOC)
+    y: Metres = Field(description=Y_DOC)
     floor: Level
-    rss: Rss
+    rss: Rss = Field(description="Transmitter id → dBm; a transmitter not heard is absent (never a sentinel).")
     heading_deg: Degrees | None = None
     t: Seconds | None = None
     device: Annotated[str, StringConstraints(max_length=200)] | None = None
@@ -200,16 +219,18 @@ def _positive_definite(cov: Cov2 | None) -> Cov2 | None:
 
 
 class InitialIn(Strict):
-    x: Metres
-    y: Metres
+    x: Metres = Field(description=X_DOC)
+    y: Metres = Field(description=Y_DOC)
     floor: Level
     heading_deg: Degrees | None = None
-    covariance: Annotated[Cov2, AfterValidator(_positive_definite)] | None = None
+    covariance: Annotated[Cov2, AfterValidator(_positive_definite)] | None = Field(
+        None, description=COV_DOC + " Symmetric, positive definite; default: the tracker's own.")
 
 
 class SessionIn(Strict):
     site_id: int
-    filter: str = Field(description="A tracker name: skpf, ekf, ukf, kf, pf or fkf.")
+    filter: str = Field(description="The tracker to run (see docs/api-conventions.md).",
+                        json_schema_extra={"enum": FILTERS})
     model_id: int | None = None
     initial: InitialIn | None = None
 
@@ -225,7 +246,7 @@ class SessionIn(Strict):
 
 class StepIn(Strict):
     t: Seconds
-    length_m: Annotated[float, Field(ge=0, le=5, allow_inf_nan=False)]
+    length_m: Annotated[float, Field(ge=0, le=5, allow_inf_nan=False, description="Step length in metres.")]
     heading_deg: Degrees
     length_std_m: Annotated[float, Field(gt=0, le=5, allow_inf_nan=False)] | None = None
     heading_std_deg: Annotated[float, Field(gt=0, le=180, allow_inf_nan=False)] | None = None
@@ -244,12 +265,14 @@ class BatchIn(Strict):
 
 
 class EstimateOut(BaseModel):
-    t: float | None
-    x: float
-    y: float
+    t: float | None = Field(description="Seconds, the time of the input that made it (null: an initial "
+                            "position before any input).")
+    x: float = Field(description=X_DOC)
+    y: float = Field(description=Y_DOC)
     floor: int
-    covariance: list[list[float]]
-    source: Literal["step", "scan", "init"]
+    covariance: list[list[float]] = Field(description=COV_DOC)
+    source: Literal["step", "scan", "init"] = Field(
+        description="What made it: a PDR step, a scan's fix, or the session's initial position.")
 
 
 class SkippedScan(BaseModel):
@@ -297,7 +320,8 @@ class Health(BaseModel):
 
 
 class ModelIn(Strict):
-    algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)]
+    algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)] = Field(
+        description="The fingerprint algorithm to train.", json_schema_extra={"enum": ALGORITHM_NAMES})
     params: Annotated[dict[str, Any], Field(max_length=50)] = {}
     use_heading: bool = False
     kinds: Annotated[list[Literal["wifi", "ble"]], Field(min_length=1, max_length=2)] | None = None
@@ -348,10 +372,10 @@ class CandidateOut(BaseModel):
 
 
 class LocateOut(BaseModel):
-    x: float
-    y: float
+    x: float = Field(description=X_DOC)
+    y: float = Field(description=Y_DOC)
     floor: int
-    covariance: list[list[float]]
+    covariance: list[list[float]] = Field(description=COV_DOC)
     model_id: int
     algorithm: str
     reference_point: str | None = None

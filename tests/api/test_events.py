@@ -207,3 +207,18 @@ def test_streams_in_openapi(admin):
     assert "text/event-stream" in paths["/api/v1/sessions/{session_id}/events"]["get"]["responses"]["200"]["content"]
     assert "/api/v1/sites/{site_id}/events" in paths
     assert ADMIN_KEY  # the keys the fixtures use
+
+
+def test_schema_states_the_conventions(anonymous):
+    """The contract's conventions in the OpenAPI schema (docs/api-conventions.md): `filter` and
+    `algorithm` are enums built from the registries; units and frame are in the descriptions."""
+    from server.estimation.fingerprint.registry import ALGORITHMS
+    from server.estimation.tracking import tracker_names
+
+    schemas = anonymous.get("/openapi.json").json()["components"]["schemas"]
+    assert schemas["SessionIn"]["properties"]["filter"]["enum"] == list(tracker_names())
+    assert schemas["ModelIn"]["properties"]["algorithm"]["enum"] == sorted(ALGORITHMS)
+    assert "clockwise from the site's +y" in schemas["StepIn"]["properties"]["heading_deg"]["description"]
+    assert "m²" in schemas["EstimateOut"]["properties"]["covariance"]["description"]
+    assert "seconds" in schemas["ScanIn"]["properties"]["t"]["description"]
+    assert "east" in schemas["FingerprintIn"]["properties"]["x"]["description"]
