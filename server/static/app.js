@@ -344,6 +344,10 @@ function onEstimate(sid, data) {
   if (tr.pts.length && tr.pts[tr.pts.length - 1].idx >= data.idx) return; // already drawn
   tr.pts.push(data);
   if (!S.sessions.some((s) => s.id === sid)) refreshSessionsSoon();
+  else {
+    const meta = document.querySelector(`#sessions li[data-session="${sid}"] .meta`);
+    if (meta) meta.textContent = `open · ${data.idx + 1} est.`;
+  }
   scheduleDraw();
 }
 
