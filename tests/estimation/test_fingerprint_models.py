@@ -75,7 +75,8 @@ def test_fix_is_consistent(name, site, fitted):
     assert isinstance(fix, Fix)
     cov = np.asarray(fix.covariance)
     assert cov.shape == (2, 2) and np.allclose(cov, cov.T)
-    assert np.all(np.linalg.eigvalsh(cov) >= model.cov_floor_m_**2 - 1e-9)  # floored
+    floor2 = model.cov_floor_m_**2 * getattr(model, "cov_scale_", 1.0)  # calibrated models scale it
+    assert np.all(np.linalg.eigvalsh(cov) >= floor2 - 1e-9)  # floored
     assert fix.candidates, "candidates expected"
     probs = [c.probability for c in fix.candidates]
     assert probs == sorted(probs, reverse=True) and sum(probs) <= 1 + 1e-9

@@ -9,6 +9,7 @@ from .nbc import NBCModel
 from .propagation import PropagationModel
 from .svm import SVMModel
 from .tkbe import TKBEModel
+from .wknn import WKNNModel
 
 ALGORITHMS: dict[str, type[FingerprintModel]] = {
     "nbc": NBCModel,
@@ -17,6 +18,7 @@ ALGORITHMS: dict[str, type[FingerprintModel]] = {
     "kde": KDEModel,
     "tkbe": TKBEModel,
     "propagation": PropagationModel,
+    "wknn": WKNNModel,
 }
 
 

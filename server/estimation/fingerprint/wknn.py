@@ -1,0 +1,322 @@
+"""Hierarchical weighted KNN ("wknn"): building → floor → position, fast NumPy path.
+
+The model the UJIIndoorLoc study chose (docs/fingerprint-results.md), in three steps
+per query, each over a float32 fingerprint matrix held densely in memory:
+
+1. **Building**: the ``building_k`` nearest fingerprints vote (weights 1/d) for a
+   building; everything after is restricted to it.
+2. **Floor**: the ``floor_k`` nearest fingerprints *of that building* vote for a floor.
+   A scan in building 1 therefore never answers a floor of building 0.
+3. **Position**: the ``k`` nearest fingerprints *of that floor* give the posterior over
+   reference points (weights 1/d); ``k=None`` picks k by cross-validation over
+   held-out groups of the training data (users or devices when present).
+
+Distances use the sparsity of a scan (it hears a few dozen of hundreds of
+transmitters): with features ≥ 0 and 0 = not heard,
+
+- ``sorensen`` (Bray–Curtis): ``Σ|q−f| / Σ(q+f)`` where
+  ``Σ|q−f| = Σq + Σf − 2·Σ_{j heard by q} min(q_j, f_j)``;
+- ``euclidean``: ``|q|² + |f|² − 2·q·f``;
+
+so a query costs one gather of its heard columns (n × heard), no scikit-learn call.
+
+**Device offset.** ``offset_search_db`` (e.g. 6): the query is also tried shifted by
+a few dB (every ``offset_step_db`` within ±``offset_search_db``) and the shift whose
+nearest fingerprint matches best is kept — a per-query estimate of the phone's RSS
+offset, at the cost of one distance pass per tried shift.
+
+**Cleaning** at fit: exact duplicate rows (same place, same scan) are dropped and
+transmitters heard by fewer than ``min_tx_rows`` fingerprints are ignored.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import FingerprintModel, TrainingData
+
+DISTANCES = ("sorensen", "euclidean")
+CALIBRATIONS = ("rows", "points", "mixed", None)
+_CHI2_2_MEDIAN = 2.0 * np.log(2.0)  # median of a χ² with 2 degrees of freedom (mean 2)
+
+
+class WKNNModel(FingerprintModel):
+    """k: neighbours for the position (None = chosen by cross-validation among
+    ``k_grid``); distance: "sorensen" or "euclidean"; building_k / floor_k: neighbours
+    voting for building and floor; offset_search_db: half-width (dB) of the per-query
+    offset search (0 = off); min_tx_rows: transmitters heard by fewer fingerprints are
+    ignored; dedupe: drop exact duplicate fingerprints; offset_estimate: per-query RSS
+    offset from the nearest ``offset_neighbours`` fingerprints (at most ±``offset_max_db``);
+    calibrate: scale the fixes' covariance so held-out NIS averages 2 (``cov_scale_``);
+    cv_rows: held-out rows used by the cross-validation (k and calibration)."""
+
+    name = "wknn"
+
+    def __init__(self, k: int | None = None, distance: str = "sorensen", building_k: int = 10,
+                 floor_k: int = 10, offset_search_db: float = 0.0, offset_step_db: float = 3.0,
+                 min_tx_rows: int = 2, dedupe: bool = True, k_grid: tuple[int, ...] = (1, 2, 3, 4, 5, 7, 9),
+                 offset_estimate: bool = True, offset_neighbours: int = 5, offset_max_db: float = 15.0,
+                 calibrate: str | None = "rows", cv_rows: int = 1500,
+                 missing: str = "powed", floor_classifier: str | None = None, **common):
+        super().__init__(missing=missing, floor_classifier=floor_classifier, **common)
+        if distance not in DISTANCES:
+            raise ValueError(f"distance must be one of {DISTANCES}")
+        self.k = None if k is None else int(k)
+        self.distance = distance
+        self.building_k = int(building_k)
+        self.floor_k = int(floor_k)
+        self.offset_search_db = float(offset_search_db)
+        self.offset_step_db = float(offset_step_db)
+        self.min_tx_rows = int(min_tx_rows)
+        self.dedupe = bool(dedupe)
+        self.k_grid = tuple(int(v) for v in k_grid)
+        if calibrate not in CALIBRATIONS:
+            raise ValueError(f"calibrate must be one of {CALIBRATIONS}")
+        self.calibrate = calibrate
+        self.cv_rows = int(cv_rows)
+        self.offset_estimate = bool(offset_estimate)
+        self.offset_neighbours = int(offset_neighbours)
+        self.offset_max_db = float(offset_max_db)
+
+    # ---- fit ---------------------------------------------------------------------------
+    def _fit(self, X, H, data: TrainingData) -> None:
+        X = np.asarray(X, dtype=np.float32)
+        keep_rows = np.ones(len(X), dtype=bool)
+        if self.dedupe and len(X):
+            key = np.ascontiguousarray(np.column_stack([X, data.rp.row_rp.astype(np.float32)[:, None]]))
+            rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
+            _, first = np.unique(rows, return_index=True)
+            keep_rows[:] = False
+            keep_rows[first] = True
+        heard = (X[keep_rows] > 0).sum(axis=0)
+        self.tx_active_ = heard >= max(self.min_tx_rows, 1)
+        if not self.tx_active_.any():
+            self.tx_active_ = heard > 0
+        self._set_matrix(X[keep_rows], None if H is None else H[keep_rows] * self.heading_weight_,
+                         data.rp.row_rp[keep_rows], data.row_group[keep_rows])
+        self.k_ = self.k if self.k is not None else 3
+        self.cov_scale_ = 1.0
+        if self.k is None or self.calibrate is not None:
+            self._cross_validate(data, keep_rows)
+
+    def _set_matrix(self, X, H, row_rp, row_group) -> None:
+        X = np.asarray(X, dtype=np.float32) * self.tx_active_[None, :]
+        self.XT_ = np.ascontiguousarray(X.T)  # (m, n): a transmitter's readings are contiguous
+        self.x_sum_ = X.sum(axis=1, dtype=np.float64)
+        self.x_sq_ = np.einsum("ij,ij->i", X, X, dtype=np.float64)
+        self.H_ = None if H is None else np.asarray(H, dtype=np.float32)  # already weighted
+        self.row_rp_ = np.asarray(row_rp, dtype=np.int64)
+        self.row_group_ = np.asarray(row_group, dtype=np.int64)
+        self.row_building_ = self.group_building_[self.row_group_] if len(self.row_group_) else self.row_group_
+
+    def _cross_validate(self, data: TrainingData, keep_rows: np.ndarray) -> None:
+        """Internal 3-fold cross-validation (the floor taken as known).
+
+        ``k_`` (when ``k`` is None): the grid value with the lowest mean error over
+        held-out *reference points* (all their scans out of the map): a walker's scan is
+        usually taken between surveyed points, which is what this mimics.
+
+        ``cov_scale_`` (when ``calibrate``): fixes between surveyed points err more than
+        fixes at one, so the calibration residuals are half of each kind — held-out
+        reference points, and held-out scans (users, else devices, else random rows) at
+        reference points that stay in the map; the scale makes their normalised
+        innovation squared ``rᵀ C⁻¹ r`` average 2, its value for a calibrated 2-D
+        Gaussian."""
+        fs = data.fs.subset(keep_rows)
+        n = len(fs)
+        rng = np.random.default_rng(0)
+        n_rp = int(self.row_rp_.max()) + 1 if n else 0
+        fold_rp = (rng.permutation(n_rp) % 3)[self.row_rp_]
+        grid = self.k_grid if self.k is None else (self.k,)
+        errs, nis_rp, count = self._cv_pass(fold_rp, grid, rng)
+        if count == 0:
+            return
+        self.k_cv_errors_ = (errs / count).tolist()
+        best = int(np.argmin(errs))
+        self.k_ = int(grid[best])
+        if self.calibrate is None:
+            return
+        groups = fs.user if fs.user is not None else fs.device
+        if groups is not None and len(set(groups.astype(str))) >= 3:
+            names = np.unique(groups.astype(str))
+            fold_of = {g: i % 3 for i, g in enumerate(rng.permutation(names))}
+            fold_row = np.array([fold_of[g] for g in groups.astype(str)])
+        else:
+            fold_row = rng.integers(0, 3, n)
+        _, nis_row, count_row = self._cv_pass(fold_row, (self.k_,), rng)
+        med = lambda v: float(np.median(v)) if len(v) else float("nan")  # noqa: E731
+        self.cv_nis_median_ = {"points": med(nis_rp[best]), "rows": med(nis_row[0]),
+                               "mixed": med(np.concatenate([nis_rp[best], nis_row[0]]))}
+        ref = self.cv_nis_median_[self.calibrate]
+        if np.isfinite(ref) and ref > 0:
+            self.cov_scale_ = ref / _CHI2_2_MEDIAN
+
+    def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[np.ndarray], int]:
+        """Sum of errors per k over 3 folds, the NIS values (raw covariance) per k, and
+        the count of held-out scans."""
+        X_all, H_all = self.XT_.T, self.H_
+        rp_all, grp_all = self.row_rp_, self.row_group_
+        errs = np.zeros(len(grid))
+        nis: list[list[np.ndarray]] = [[] for _ in grid]
+        count = 0
+        try:
+            for f in range(3):
+                te = np.flatnonzero(fold == f)
+                tr = np.flatnonzero(fold != f)
+                if len(te) == 0 or len(tr) == 0:
+                    continue
+                if len(te) > self.cv_rows // 3:
+                    te = np.sort(rng.choice(te, self.cv_rows // 3, replace=False))
+                self._set_matrix(X_all[tr], None if H_all is None else H_all[tr], rp_all[tr], grp_all[tr])
+                Hq = None if H_all is None else H_all[te] / max(self.heading_weight_, 1e-12)
+                D = self._distances(X_all[te], Hq)
+                D = np.where(self.row_group_[None, :] == grp_all[te][:, None], D, np.inf)
+                ok = np.isfinite(D).any(axis=1)  # a floor with no map left says nothing
+                D, te = D[ok], te[ok]
+                if not len(te):
+                    continue
+                truth = self.rp_xy_[rp_all[te]]
+                order = self._nearest(D, max(grid))
+                for i, k in enumerate(grid):
+                    with np.errstate(divide="ignore"):
+                        pred = super()._reduce(np.log(self._scores(D, k, order)))
+                    r = pred.xy - truth
+                    errs[i] += np.hypot(*r.T).sum()
+                    nis[i].append(np.einsum("ni,nij,nj->n", r, np.linalg.inv(pred.covariance), r))
+                count += len(te)
+        finally:
+            self._set_matrix(X_all, H_all, rp_all, grp_all)
+        return errs, [np.concatenate(v) if v else np.zeros(0) for v in nis], count
+
+    # ---- distances ---------------------------------------------------------------------
+    def _distances(self, Q: np.ndarray, Hq: np.ndarray | None) -> np.ndarray:
+        """(nq, n) distances from encoded queries to the stored fingerprints."""
+        Q = np.asarray(Q, dtype=np.float32) * self.tx_active_[None, :]
+        out = np.empty((len(Q), self.XT_.shape[1]), dtype=np.float64)
+        for i, q in enumerate(Q):
+            cols = np.flatnonzero(q > 0)
+            qv = q[cols]
+            Fh = self.XT_[cols]  # (heard, n)
+            if self.distance == "sorensen":
+                inter = np.minimum(Fh, qv[:, None]).sum(axis=0, dtype=np.float64)
+                tot = float(qv.sum()) + self.x_sum_
+                d = (tot - 2.0 * inter) / np.maximum(tot, 1e-9)
+            else:
+                cross = qv @ Fh
+                d = np.sqrt(np.maximum(float(qv @ qv) + self.x_sq_ - 2.0 * cross, 0.0))
+            out[i] = d
+        if self.H_ is not None and Hq is not None:
+            hq = np.asarray(Hq, dtype=np.float32) * self.heading_weight_
+            dh = ((hq[:, None, :] - self.H_[None, :, :]) ** 2).sum(-1)
+            out += np.sqrt(dh)
+        return out
+
+    def _shifted(self, R: np.ndarray, delta: float) -> np.ndarray:
+        return self.encoder_.transform(R + delta)
+
+    def _estimate_offset(self, Q: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """Per-query RSS offset (dB): the median, over the transmitters heard both by the
+        query and by its ``offset_neighbours`` nearest fingerprints, of (fingerprint −
+        query); 0 when fewer than 3 such readings."""
+        k = max(1, min(self.offset_neighbours, D.shape[1]))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
+        Rq = self._decode(Q)
+        out = np.zeros(len(Q))
+        for i in range(len(Q)):
+            cols = np.flatnonzero(~np.isnan(Rq[i]))
+            F = self._decode(self.XT_[np.ix_(cols, idx[i])].T)
+            diff = F - Rq[i, cols][None, :]
+            diff = diff[~np.isnan(diff)]
+            if len(diff) >= 3:
+                out[i] = float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db))
+        return out
+
+    def _offset_distances(self, Q: np.ndarray, Hq) -> np.ndarray:
+        """Distances with the per-query RSS offset (see the module docstring)."""
+        D = self._distances(Q, Hq)
+        if self.offset_estimate:
+            delta = self._estimate_offset(Q, D)
+            redo = np.abs(delta) >= 1.0
+            if redo.any():
+                R = self._decode(Q[redo]) + delta[redo][:, None]
+                D[redo] = self._distances(self.encoder_.transform(R), None if Hq is None else Hq[redo])
+        if self.offset_search_db <= 0:
+            return D
+        R = self._decode(Q)
+        best = D.min(axis=1)
+        steps = np.arange(self.offset_step_db, self.offset_search_db + 1e-9, self.offset_step_db)
+        for delta in np.concatenate([steps, -steps]):
+            Dd = self._distances(self._shifted(R, float(delta)), Hq)
+            m = Dd.min(axis=1)
+            better = m < best
+            if better.any():
+                D[better] = Dd[better]
+                best = np.where(better, m, best)
+        return D
+
+    def _decode(self, Q: np.ndarray) -> np.ndarray:
+        """Encoded features back to dBm (NaN = not heard), for the offset search."""
+        v = np.asarray(Q, dtype=np.float64)
+        if self.encoder_.missing == "powed":
+            v = v ** (1.0 / self.encoder_.beta)
+        elif self.encoder_.missing == "exponential":
+            v = np.where(v > 0, np.log(np.maximum(v, 1e-12)) * self.encoder_.alpha / -self.encoder_.floor_dbm + 1.0, 0.0)
+        dbm = self.encoder_.floor_dbm + v * (-self.encoder_.floor_dbm)
+        return np.where(np.asarray(Q) > 0, dbm, np.nan)
+
+    # ---- hierarchy ---------------------------------------------------------------------
+    @staticmethod
+    def _vote(D: np.ndarray, labels: np.ndarray, k: int, n_labels: int) -> np.ndarray:
+        n = len(D)
+        k = max(1, min(k, D.shape[1]))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (n, 1))
+        d = np.take_along_axis(D, idx, axis=1)
+        w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
+        votes = np.zeros((n, n_labels))
+        np.add.at(votes, (np.broadcast_to(np.arange(n)[:, None], idx.shape), labels[idx]), w)
+        return np.argmax(votes, axis=1)
+
+    def _restrict(self, D: np.ndarray) -> np.ndarray:
+        """Building, then floor: distances outside the chosen (building, floor) → inf."""
+        if len(self.group_floor_) <= 1:
+            return D
+        buildings = np.unique(self.group_building_)
+        if len(buildings) > 1:
+            b_index = np.searchsorted(buildings, self.row_building_)
+            b = buildings[self._vote(D, b_index, self.building_k, len(buildings))]
+            D = np.where(self.row_building_[None, :] == b[:, None], D, np.inf)
+        g = self._vote(D, self.row_group_, self.floor_k, len(self.group_floor_))
+        return np.where(self.row_group_[None, :] == g[:, None], D, np.inf)
+
+    @staticmethod
+    def _nearest(D: np.ndarray, k: int) -> np.ndarray:
+        """(n, k) column indices of the k smallest of each row, nearest first."""
+        k = max(1, min(k, D.shape[1]))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
+        return np.take_along_axis(idx, np.argsort(np.take_along_axis(D, idx, axis=1), axis=1), axis=1)
+
+    def _scores(self, D: np.ndarray, k: int, order: np.ndarray | None = None) -> np.ndarray:
+        n = len(D)
+        idx = (self._nearest(D, k) if order is None else order)[:, :k]
+        d = np.take_along_axis(D, idx, axis=1)
+        w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
+        scores = np.zeros((n, len(self.rp_xy_)))
+        np.add.at(scores, (np.broadcast_to(np.arange(n)[:, None], idx.shape), self.row_rp_[idx]), w)
+        return scores
+
+    def _position(self, D: np.ndarray, k: int) -> np.ndarray:
+        s = self._scores(D, k)
+        return (s @ self.rp_xy_) / np.maximum(s.sum(axis=1, keepdims=True), 1e-300)
+
+    def _reduce(self, logs: np.ndarray):
+        pred = super()._reduce(logs)
+        pred.covariance *= self.cov_scale_
+        return pred
+
+    def _log_scores(self, Q, Hq, mask):
+        D = self._offset_distances(Q, Hq)
+        if mask is not None:
+            D = np.where(mask[:, self.row_rp_], D, np.inf)
+        D = self._restrict(D)
+        with np.errstate(divide="ignore"):
+            return np.log(self._scores(D, self.k_))
