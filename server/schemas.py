@@ -47,6 +47,8 @@ COV_DOC = "2×2 row-major covariance [[sxx, sxy], [sxy, syy]] of (x, y), in m².
 #: the names a session's ``filter`` and a model's ``algorithm`` may take, published as enums in the schema
 FILTERS: list[str] = list(tracker_names())
 ALGORITHM_NAMES: list[str] = sorted(ALGORITHMS)
+_FILTER_ENUM: dict[str, Any] = {"enum": FILTERS}
+_ALGORITHM_ENUM: dict[str, Any] = {"enum": ALGORITHM_NAMES}
 Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
 
 
@@ -230,7 +232,7 @@ class InitialIn(Strict):
 class SessionIn(Strict):
     site_id: int
     filter: str = Field(description="The tracker to run (see docs/api-conventions.md).",
-                        json_schema_extra={"enum": FILTERS})
+                        json_schema_extra=_FILTER_ENUM)
     model_id: int | None = None
     initial: InitialIn | None = None
 
@@ -321,7 +323,7 @@ class Health(BaseModel):
 
 class ModelIn(Strict):
     algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)] = Field(
-        description="The fingerprint algorithm to train.", json_schema_extra={"enum": ALGORITHM_NAMES})
+        description="The fingerprint algorithm to train.", json_schema_extra=_ALGORITHM_ENUM)
     params: Annotated[dict[str, Any], Field(max_length=50)] = {}
     use_heading: bool = False
     kinds: Annotated[list[Literal["wifi", "ble"]], Field(min_length=1, max_length=2)] | None = None
