@@ -3,9 +3,11 @@
     python -m localizer_tools.upload FILE --site ID [--key KEY] [--format csv|json|ujiindoorloc] [--dry-run]
 
 It first validates every chunk with ``?dry_run=true`` and prints a per-row error report
-(file line, field, message); only a clean file is then stored. Each chunk carries an
-``Idempotency-Key`` derived from the file's hash, so re-running after a crash or retrying
-a failed chunk never stores a row twice.
+(file line, field, message); only a clean file is then stored. Every chunk names the file
+(``?source=<its SHA-256>``) and its first row, so the server stores each row of the file
+once: re-running after a crash, with any ``--chunk-size``, stores exactly the rows still
+missing. Each chunk also carries an ``Idempotency-Key`` naming the file and its rows, so a
+retried chunk is answered as a replay.
 
 A missing file or key, a server that does not answer, a refused key (401/403) or an
 unknown site (404) is one ``error:`` line on stderr and exit status 1 (2 for usage).
@@ -102,19 +104,22 @@ class Uploader:
     def __init__(self, client: httpx.Client, site_id: int, fmt: str, file_hash: str):
         self.client = client
         self.url = f"/api/v1/sites/{site_id}/surveys"
-        self.params = {"format": fmt} if fmt == "ujiindoorloc" else {}
+        self.params: dict[str, str] = {"format": fmt} if fmt == "ujiindoorloc" else {}
+        self.params["source"] = f"sha256:{file_hash}"
         self.file_hash = file_hash
 
     def send(self, chunk: Chunk, dry_run: bool) -> httpx.Response:
-        """POST one chunk; transport errors and 5xx are retried with the same idempotency key."""
+        """POST one chunk; transport errors, 5xx and 429 are retried with the same idempotency key."""
         headers = {"Content-Type": chunk.content_type}
         if not dry_run:
-            headers["Idempotency-Key"] = f"upload:{self.file_hash}:{chunk.index}"
-        params = {**self.params, "dry_run": "true"} if dry_run else self.params
+            headers["Idempotency-Key"] = f"upload:{self.file_hash[:20]}:{chunk.first_row}+{chunk.rows}"
+        params = {**self.params, "first_row": str(chunk.first_row)}
+        if dry_run:
+            params["dry_run"] = "true"
         for attempt in range(RETRIES):
             try:
                 answer = self.client.post(self.url, content=chunk.body, headers=headers, params=params)
-                if answer.status_code < 500:
+                if answer.status_code < 500 and answer.status_code != 429:
                     return answer
             except httpx.TransportError:
                 if attempt == RETRIES - 1:
@@ -149,9 +154,9 @@ def upload(
 ) -> int:
     """Validate (and unless ``dry_run``, store) a survey file; returns a process exit code."""
     content = path.read_bytes()
-    file_hash = hashlib.sha256(content).hexdigest()[:20]
+    file_hash = hashlib.sha256(content).hexdigest()
     rows = None if fmt == "json" else max(content.count(b"\n") - 1, 0)
-    totals = {"accepted": 0, "skipped": 0, "new_reference_points": 0, "replayed_chunks": 0}
+    totals = {"accepted": 0, "skipped": 0, "new_reference_points": 0, "already_stored": 0, "replayed_chunks": 0}
     started = time.perf_counter()
     with httpx.Client(base_url=base_url, headers={"Authorization": f"Bearer {key}"}, timeout=300) as client:
         check(client, site_id)
@@ -170,8 +175,8 @@ def upload(
                     elif answer.headers.get("Idempotent-Replay"):
                         totals["replayed_chunks"] += 1
                     elif not is_dry:
-                        for name in ("accepted", "skipped", "new_reference_points"):
-                            totals[name] += answer.json()[name]
+                        for name in ("accepted", "skipped", "new_reference_points", "already_stored"):
+                            totals[name] += answer.json().get(name, 0)
                     bar.update(chunk.rows)
             if errors:
                 print(f"{len(errors)} problem(s); nothing {'was' if is_dry else 'more was'} stored:", file=out)
@@ -185,7 +190,8 @@ def upload(
         print(
             f"{path.name}: {totals['accepted']} fingerprints stored, {totals['skipped']} skipped, "
             f"{totals['new_reference_points']} new reference points in {seconds:.1f} s"
-            + (f"; {totals['replayed_chunks']} chunk(s) had been stored before" if totals["replayed_chunks"] else ""),
+            + (f"; {totals['replayed_chunks']} chunk(s) had been stored before" if totals["replayed_chunks"] else "")
+            + (f"; {totals['already_stored']} row(s) had been stored by an earlier run" if totals["already_stored"] else ""),
             file=out,
         )
     return 0

@@ -104,12 +104,30 @@ def status_of(exc: ServiceError) -> int:
 
 def detail_of(exc: ServiceError) -> Any:
     """The body's ``detail``: the error's own, with where an invalid field was in the request and
-    how to get a model added."""
+    how to get a model added. A 422's detail is a list of errors as the OpenAPI document publishes
+    them (``loc``, ``msg``, ``type``), plus the error's own keys (``row``, ``field``, ``line``)."""
     if isinstance(exc, InvalidField):
-        return [{"loc": ["body", exc.field], "field": exc.field, "msg": exc.msg}]
+        return [{"loc": ["body", exc.field], "field": exc.field, "msg": exc.msg, "type": "value_error"}]
     if isinstance(exc, NoReadyModel):
         return f"{exc.detail}: train one with POST /api/v1/sites/{exc.site_id}/models"
+    if isinstance(exc, Invalid):
+        return validation_errors(exc.detail)
     return exc.detail
+
+
+def validation_errors(detail: Any) -> list[dict[str, Any]]:
+    """``detail`` (a message, or a list of problems naming their ``row`` and ``field``) as the
+    published 422 schema's list of ``{loc, msg, type}``."""
+    errors = []
+    for item in detail if isinstance(detail, list) else [detail]:
+        error = dict(item) if isinstance(item, dict) else {"msg": str(item)}
+        if "loc" not in error:
+            row, field = error.get("row"), error.get("field")
+            error["loc"] = ["body", *([row] if isinstance(row, int) else []), *([str(field)] if field else [])]
+        error["msg"] = str(error.get("msg", "invalid"))
+        error.setdefault("type", "value_error")
+        errors.append(error)
+    return errors
 
 
 async def _service_error(_: Request, exc: Exception) -> JSONResponse:

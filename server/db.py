@@ -95,9 +95,15 @@ class Database:
         self._write_lock = SqliteWriteLock(make_url(url).database) if self.embedded else nullcontext()
 
     @contextmanager
-    def transaction(self, rollback_only: bool = False) -> Iterator[Session]:
-        """A session whose work commits on success (rolls back on error, or always if ``rollback_only``)."""
-        with self._sessions() as session:
+    def transaction(self, rollback_only: bool = False, write: bool = False) -> Iterator[Session]:
+        """A session whose work commits on success (rolls back on error, or always if ``rollback_only``).
+
+        ``write``: a transaction that reads, then writes what it read depends on (SQLite: it
+        takes the write lock and begins IMMEDIATE, so no other writer can commit between
+        its reads and its writes, which SQLite would answer with "database is locked")."""
+        with self._write_lock if write else nullcontext(), self._sessions() as session:
+            if write and self.embedded:
+                session.connection().exec_driver_sql("BEGIN IMMEDIATE")
             try:
                 yield session
             except BaseException:

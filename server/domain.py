@@ -200,6 +200,8 @@ class SurveyOutcome:
     dry_run: bool = False
     #: the answer stored for an earlier upload with the same idempotency key
     replayed: bool = False
+    #: rows of the request that an earlier request of the same ``source`` file had stored
+    already_stored: int = 0
 
 
 @dataclass(frozen=True)

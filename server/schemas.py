@@ -201,6 +201,7 @@ class SurveyResult(BaseModel):
     reference_points: int = Field(description="Distinct reference points the upload touched.")
     new_reference_points: int = Field(description="Reference points the upload created.")
     skipped: int = Field(0, description="Rows that heard nothing (UJIIndoorLoc format only).")
+    already_stored: int = Field(0, description="Rows an earlier upload of the same `source` file had stored (not stored again).")
     dry_run: bool = False
 
 

@@ -43,6 +43,11 @@ def invalid_rows(errors: list[dict[str, Any]], total: int | None = None) -> Inva
 class ParsedSurvey:
     fingerprints: list[FingerprintRecord]
     skipped: int = 0
+    #: each fingerprint's 0-based data row in the body (JSON: its index in ``fingerprints``)
+    rows: list[int] | None = None
+
+    def row_of(self, index: int) -> int:
+        return index if self.rows is None else self.rows[index]
 
 
 def parse_survey(body: bytes, content_type: str, fmt: str | None, max_rows: int) -> ParsedSurvey:
@@ -62,7 +67,7 @@ def parse_survey(body: bytes, content_type: str, fmt: str | None, max_rows: int)
         raise TooLarge(f"survey has {len(rows)} fingerprints; at most {max_rows} are accepted in one request")
     if not rows:
         raise invalid_rows([_error(None, "fingerprints", "the survey holds no fingerprints")])
-    return ParsedSurvey(_validate(rows, positions), skipped)
+    return ParsedSurvey(_validate(rows, positions), skipped, None if positions is None else [p[0] for p in positions])
 
 
 def _text(body: bytes) -> str:
@@ -77,13 +82,47 @@ def _json_rows(body: bytes) -> list[Any]:
         doc = json.loads(body)
     except ValueError as exc:
         raise invalid_rows([_error(None, "body", f"malformed JSON: {exc}")]) from None
+    except RecursionError:
+        raise invalid_rows([_error(None, "body", "JSON nested too deeply")]) from None
     if not isinstance(doc, dict) or set(doc) != {"fingerprints"} or not isinstance(doc["fingerprints"], list):
         raise invalid_rows([_error(None, "body", 'expected an object {"fingerprints": [...]}')])
     return doc["fingerprints"]
 
 
+class _CsvReader:
+    """``csv.reader`` whose parse errors (a bare CR, a cell over 128 KiB, ...) are `Invalid`
+    naming the data row and the file line."""
+
+    def __init__(self, text: str):
+        self._reader = csv.reader(io.StringIO(text, newline=""))
+        self.data_row = -2  # the last row read: -1 is the header
+
+    @property
+    def line_num(self) -> int:
+        return self._reader.line_num
+
+    def __iter__(self) -> _CsvReader:
+        return self
+
+    def __next__(self) -> list[str]:
+        try:
+            cells = next(self._reader)
+        except csv.Error as exc:
+            row = None if self.data_row < -1 else self.data_row + 1
+            where = "header" if row is None else "row"
+            raise invalid_rows([_error(row, where, f"unreadable CSV: {exc}", line=self._reader.line_num)]) from None
+        self.data_row += 1
+        return cells
+
+
 def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]]]:
-    reader = csv.reader(io.StringIO(text))
+    if "\r" in text.replace("\r\n", ""):
+        lone = text.replace("\r\n", "\n\n").find("\r")  # same offsets, CRLF line ends hidden
+        line = text.count("\n", 0, lone) + 1
+        raise invalid_rows([_error(line - 2 if line > 1 else None, "row" if line > 1 else "header",
+                                   "a carriage return outside a CRLF line end (CR-only line ends, or a CR in a "
+                                   "cell): use LF or CRLF line ends", line=line)])
+    reader = _CsvReader(text)
     header = [h.strip() for h in next(reader, [])]
     missing = [f for f in ("x", "y", "floor") if f not in header]
     if missing:
@@ -112,10 +151,16 @@ def _csv_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]]]:
 
 def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], int]:
     """UJIIndoorLoc CSV through the shared parser, as rows for the common validation."""
+    if text and not text.endswith("\n"):
+        # the layout's files end each row with a line end: without one, the last cell may have been cut
+        raise invalid_rows([_error(None, "body", "the file does not end with a line end: it may be truncated",
+                                   line=text.count("\n") + 1)])
     try:
         survey = parse_ujiindoorloc(io.StringIO(text))
     except UjiFormatError as exc:
         raise invalid_rows([_error(exc.row, exc.field, str(exc), line=exc.line)]) from None
+    except csv.Error as exc:
+        raise invalid_rows([_error(None, "body", f"unreadable CSV: {exc}")]) from None
     rows = [_uji_row(r) for r in survey.records]
     return rows, [(r.row, r.line) for r in survey.records], survey.skipped
 

@@ -128,10 +128,15 @@ class SurveyUpload(Base):
     """One accepted survey request; its idempotency key makes a retried upload harmless."""
 
     __tablename__ = "survey_uploads"
-    __table_args__ = (UniqueConstraint("site_id", "idempotency_key"),)
+    __table_args__ = (UniqueConstraint("site_id", "idempotency_key"), Index("ix_survey_uploads_source", "site_id", "source"))
     id: Mapped[int] = mapped_column(primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
     idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    #: SHA-256 of the request (format and body): a key replays only the request it came with
+    request_hash: Mapped[str | None] = mapped_column(String(64))
+    #: the file this request is a part of (``?source=``), and the file rows it stored: [[first, end), ...]
+    source: Mapped[str | None] = mapped_column(String(200))
+    source_rows: Mapped[list[Any] | None] = mapped_column()
     result: Mapped[dict[str, Any]] = mapped_column(default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 

@@ -107,3 +107,44 @@ def test_cli_version_and_defaults_in_help(capsys):
         main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "(default: 2000)" in text and "(default: http" in text and "default: from the file" in text
+
+
+def test_a_killed_upload_rerun_with_other_chunk_sizes_stores_every_row_exactly_once(admin, live_server, site_id, tmp_path):
+    """The tool as a real process, killed (SIGKILL) part-way through storing, then run again with
+    other chunk sizes: every row of the file is stored once, none lost, none doubled."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    total = 1200
+    path = tmp_path / "big.csv"
+    path.write_text("x,y,floor,label,wifi:ap1,wifi:ap2\n" + "".join(f"{i % 40},{i // 40},0,P{i},-50,-{40 + i % 50}\n"
+                                                                    for i in range(total)))
+    env = {**os.environ, "LOCALIZER_ADMIN_KEY": ADMIN_KEY}
+    command = [sys.executable, "-m", "localizer_tools.upload", str(path), "--site", str(site_id), "--url", live_server.url,
+               "--quiet", "--no-validate"]
+    tool = subprocess.Popen([*command, "--chunk-size", "50"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while survey_count(admin, site_id) < 150 and tool.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    tool.send_signal(signal.SIGKILL)
+    tool.wait(timeout=20)
+    stored_before = -1
+    while stored_before != survey_count(admin, site_id):  # the chunk in flight when it died may still be stored
+        stored_before = survey_count(admin, site_id)
+        time.sleep(0.5)
+    assert 0 < stored_before < total, "the tool was to be killed part-way"
+
+    def each_row_once() -> None:
+        points = admin.get(f"/api/v1/sites/{site_id}/reference-points").json()
+        assert sorted(p["fingerprints"] for p in points) == [1] * survey_count(admin, site_id)
+
+    each_row_once()
+    for chunk_size in ("333", "7", "5000"):
+        rerun = subprocess.run([*command, "--chunk-size", chunk_size], env=env, capture_output=True, text=True, timeout=120)
+        assert rerun.returncode == 0, rerun.stderr
+        assert survey_count(admin, site_id) == total
+        each_row_once()
+    assert "0 fingerprints stored" in rerun.stdout and f"{total} row(s) had been stored by an earlier run" in rerun.stdout

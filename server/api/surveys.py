@@ -28,6 +28,7 @@ _BODY_DOC["requestBody"]["content"]["text/csv"] = {
     openapi_extra=_BODY_DOC,
     responses={
         200: {"description": "Dry run, or a replay of an upload with the same Idempotency-Key.", "model": SurveyResult},
+        409: {"description": "The Idempotency-Key was used before with another request."},
         413: {"description": "Too many fingerprints, or too large a body."},
         415: {"description": "Neither JSON nor CSV."},
         422: {"description": "Invalid rows: each error names the row (and CSV line) and the field; nothing stored."},
@@ -42,8 +43,15 @@ async def upload_survey(
     format: Annotated[Literal["json", "csv", "ujiindoorloc"] | None, Query()] = None,
     dry_run: Annotated[bool, Query(description="Validate and count only; store nothing.")] = False,
     idempotency_key: Annotated[
-        str | None, Header(max_length=200, description="A retried upload with the same key is stored once.")
+        str | None,
+        Header(max_length=200, description="A retried upload with the same key is stored once; "
+               "the key with another body is 409."),
     ] = None,
+    source: Annotated[str | None, Query(min_length=1, max_length=200, pattern=r"^[\x21-\x7e]+$",
+                                        description="Names the file this body is a part of: rows of the file "
+                                        "that an earlier upload stored are not stored again.")] = None,
+    first_row: Annotated[int, Query(ge=0, le=2**31 - 1, description="The file's data row (0-based, under "
+                                    "the header) that is this body's first row (with `source`).")] = 0,
 ) -> SurveyResult:
     body = await request.body()
     outcome = await run_in_threadpool(
@@ -54,6 +62,8 @@ async def upload_survey(
         format,
         idempotency_key=idempotency_key,
         dry_run=dry_run,
+        source=source,
+        first_row=first_row,
     )
     if outcome.replayed or dry_run:
         response.status_code = status.HTTP_200_OK
@@ -64,5 +74,6 @@ async def upload_survey(
         reference_points=outcome.reference_points,
         new_reference_points=outcome.new_reference_points,
         skipped=outcome.skipped,
+        already_stored=outcome.already_stored,
         dry_run=outcome.dry_run,
     )

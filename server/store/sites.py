@@ -58,6 +58,12 @@ def site_exists(s: Session, site_id: int) -> bool:
     return s.scalar(select(SiteRow.id).where(SiteRow.id == site_id)) is not None
 
 
+def lock_site(s: Session, site_id: int) -> bool:
+    """Whether the site exists; on PostgreSQL its row stays locked until the transaction ends, so
+    writers of one site's surveys take turns (SQLite: ``Database.transaction(write=True)`` does)."""
+    return s.scalar(select(SiteRow.id).where(SiteRow.id == site_id).with_for_update()) is not None
+
+
 def get_site(s: Session, site_id: int) -> Site | None:
     row = s.scalar(
         select(SiteRow).where(SiteRow.id == site_id).options(selectinload(SiteRow.floors))

@@ -6,7 +6,8 @@ points are keyed by ``(floor, label)`` or ``(floor, x, y)`` to the millimetre.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from typing import Any
 
 from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
@@ -18,15 +19,49 @@ from server.tables import Fingerprint, ReferencePoint, SurveyUpload
 
 def find_upload(s: Session, site_id: int, idempotency_key: str) -> SurveyOutcome | None:
     """The outcome stored for an earlier upload with this key, as a replay."""
-    stored = s.scalar(
-        select(SurveyUpload.result).where(SurveyUpload.site_id == site_id, SurveyUpload.idempotency_key == idempotency_key)
-    )
-    if stored is None:
+    found = upload_of_key(s, site_id, idempotency_key)
+    return None if found is None else found[0]
+
+
+def upload_of_key(s: Session, site_id: int, idempotency_key: str) -> tuple[SurveyOutcome, str | None] | None:
+    """The outcome stored for an earlier upload with this key (as a replay) and its request's hash
+    (None: stored before requests were hashed)."""
+    row = s.execute(
+        select(SurveyUpload.result, SurveyUpload.request_hash)
+        .where(SurveyUpload.site_id == site_id, SurveyUpload.idempotency_key == idempotency_key)
+    ).first()
+    if row is None:
         return None
+    stored: dict[str, Any] = row.result
     return SurveyOutcome(
         accepted=stored["accepted"], reference_points=stored["reference_points"],
         new_reference_points=stored["new_reference_points"], skipped=stored.get("skipped", 0), replayed=True,
-    )
+        already_stored=stored.get("already_stored", 0),
+    ), row.request_hash
+
+
+def source_rows(s: Session, site_id: int, source: str) -> list[tuple[int, int]]:
+    """The rows of the file ``source`` that earlier uploads stored: sorted, merged ``[first, end)`` ranges."""
+    stored: list[list[Any] | None] = list(s.scalars(
+        select(SurveyUpload.source_rows).where(SurveyUpload.site_id == site_id, SurveyUpload.source == source)
+    ))
+    ranges = [(int(a), int(b)) for upload_rows in stored for a, b in upload_rows or ()]
+    return merge_ranges(ranges)
+
+
+def merge_ranges(ranges: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
+    merged: list[tuple[int, int]] = []
+    for a, b in sorted(ranges):
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
+
+
+def ranges_of(rows: Iterable[int]) -> list[tuple[int, int]]:
+    """Row numbers as merged ``[first, end)`` ranges."""
+    return merge_ranges((r, r + 1) for r in rows)
 
 
 def reference_point_key(fp: FingerprintRecord) -> str:
@@ -35,15 +70,24 @@ def reference_point_key(fp: FingerprintRecord) -> str:
 
 
 def add_survey(
-    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], idempotency_key: str | None, skipped: int
+    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], idempotency_key: str | None, skipped: int,
+    *, request_hash: str | None = None, source: str | None = None, rows: Sequence[int] = (), already_stored: int = 0,
 ) -> SurveyOutcome:
-    """Store a validated survey: reference points, unseen transmitters and fingerprints, in bulk."""
+    """Store a validated survey: reference points, unseen transmitters and fingerprints, in bulk.
+    ``rows``: the file rows of ``source`` the fingerprints are (remembered, so no later upload stores them again)."""
     keys = [(fp.floor, reference_point_key(fp)) for fp in fingerprints]
     rp_ids, created = _ensure_reference_points(s, site_id, fingerprints, keys)
     add_heard_transmitters(s, site_id, {tx for fp in fingerprints for tx in fp.rss})
-    upload = SurveyUpload(site_id=site_id, idempotency_key=idempotency_key)
+    upload = SurveyUpload(
+        site_id=site_id, idempotency_key=idempotency_key, request_hash=request_hash, source=source,
+        source_rows=None if source is None else [list(r) for r in ranges_of(rows)],
+    )
     s.add(upload)
     s.flush()
+    if not fingerprints:  # every row had been stored by an earlier upload of the file
+        upload.result = {"accepted": 0, "reference_points": 0, "new_reference_points": 0, "skipped": skipped,
+                         "already_stored": already_stored}
+        return SurveyOutcome(0, 0, 0, skipped, already_stored=already_stored)
     s.execute(
         insert(Fingerprint),
         [
@@ -67,12 +111,14 @@ def add_survey(
     _recentre_labelled_points(s, [rp_ids[k] for k in set(keys) if k[1].startswith("label:")])
     outcome = SurveyOutcome(
         accepted=len(fingerprints), reference_points=len(set(keys)), new_reference_points=created, skipped=skipped,
+        already_stored=already_stored,
     )
     upload.result = {
         "accepted": outcome.accepted,
         "reference_points": outcome.reference_points,
         "new_reference_points": outcome.new_reference_points,
         "skipped": outcome.skipped,
+        "already_stored": outcome.already_stored,
     }
     return outcome
 

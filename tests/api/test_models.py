@@ -113,7 +113,8 @@ def test_locate_409_without_a_ready_model_and_422_for_unknown_transmitters(admin
     unknown = device.post(url, json={"rss": {"wifi:never-seen": -50}})
     assert unknown.status_code == 422
     assert unknown.json() == {"detail": [
-        {"loc": ["body", "rss"], "field": "rss", "msg": f"no transmitter in the scan is known to model {model['id']}"}
+        {"loc": ["body", "rss"], "field": "rss", "msg": f"no transmitter in the scan is known to model {model['id']}",
+         "type": "value_error"}
     ]}
     assert device.post(url, json={"rss": {"wifi:w00": 3}}).status_code == 422
     assert device.post(url, json={"rss": {}}).status_code == 422

@@ -129,7 +129,7 @@ def test_reference_points_group_by_label_or_position(admin):
     }
     answer = admin.post(f"/api/v1/sites/{site['id']}/surveys", json=survey)
     assert answer.json() == {
-        "accepted": 5, "reference_points": 3, "new_reference_points": 3, "skipped": 0, "dry_run": False,
+        "accepted": 5, "reference_points": 3, "new_reference_points": 3, "skipped": 0, "already_stored": 0, "dry_run": False,
     }
     points = admin.get(f"/api/v1/sites/{site['id']}/reference-points").json()
     seen = sorted([(p["floor"], p["label"], p["x"], p["y"], p["fingerprints"]) for p in points], key=str)
