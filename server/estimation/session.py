@@ -42,7 +42,8 @@ from server.estimation.types import (
 
 #: initial covariance (m²) when the phone gives a start position without one
 DEFAULT_INITIAL_VAR_M2 = 1.0
-STATE_VERSION = 1
+#: 2: ``tracker_params`` added (a version-1 state loads with none)
+STATE_VERSION = 2
 #: innovation gate: a fix whose squared Mahalanobis distance from the estimate, under the
 #: tracker's covariance plus the fix's, exceeds χ²(2 dof, 0.999) is an outlier (a fingerprint
 #: match in the wrong place) and moves nothing
@@ -66,9 +67,11 @@ class SessionEstimator:
     """The whole per-session estimation state. ``tracker`` is None until the first fix
     of a session opened without an initial position."""
 
-    def __init__(self, filter: str, seed: int):
+    def __init__(self, filter: str, seed: int, tracker_params: dict[str, Any] | None = None):
         self.filter = filter
         self.seed = int(seed)
+        #: keyword arguments for the tracker this session starts (none: its defaults)
+        self.tracker_params: dict[str, Any] = dict(tracker_params or {})
         self.tracker: Tracker | None = None
         self.floors: FloorTracker | None = None
         self.landmarks = LandmarkCorrector({})
@@ -87,7 +90,7 @@ class SessionEstimator:
 
     def start(self, mean, cov, floor: int, walls, t: float | None, source: str) -> Estimate:
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
-        self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed)
+        self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed, **self.tracker_params)
         self.floors = FloorTracker(floor)
         return self._record(t, source)
 
@@ -250,6 +253,7 @@ class SessionEstimator:
             "version": STATE_VERSION,
             "filter": self.filter,
             "seed": self.seed,
+            "tracker_params": dict(self.tracker_params),
             "tracker": None if self.tracker is None else self.tracker.to_dict(),
             "floors": None if self.floors is None else self.floors.to_dict(),
             "landmarks": self.landmarks.to_dict(),
@@ -260,9 +264,9 @@ class SessionEstimator:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> SessionEstimator:
-        if d.get("version") != STATE_VERSION:
+        if d.get("version") not in (1, STATE_VERSION):
             raise ValueError(f"unsupported session state version {d.get('version')!r}")
-        obj = cls(d["filter"], d["seed"])
+        obj = cls(d["filter"], d["seed"], d.get("tracker_params"))  # version 1 has none
         obj.tracker = None if d["tracker"] is None else tracker_from_dict(d["tracker"])
         obj.floors = None if d["floors"] is None else FloorTracker.from_dict(d["floors"])
         obj.landmarks = LandmarkCorrector.from_dict(d["landmarks"])

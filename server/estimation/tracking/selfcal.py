@@ -32,7 +32,7 @@ from server.estimation.types import Step
 #: prior standard deviation of the heading bias at a session's start (degrees)
 BIAS0_STD_DEG = 10.0
 #: random-walk standard deviation of the heading bias per step (degrees)
-BIAS_WALK_DEG = 0.3
+BIAS_WALK_DEG = 1.0
 #: prior standard deviation of the step-length scale (1 = the phone's lengths are right)
 SCALE0_STD = 0.1
 #: random-walk standard deviation of the step-length scale per step

@@ -1,0 +1,375 @@
+"""A family of simulated walks for tuning and for held-out evaluation of the trackers.
+
+    python benchmarks/scenario_family.py --split heldout --n 12 [--fixes knn|gaussian|both]
+    python benchmarks/scenario_family.py --split tune --n 12 --filters ekf,ekf-xy
+
+Written apart from ``client_sim`` (its own world, radio and PDR error model) and run
+offline through ``SessionEstimator.apply_batch`` in 2 s batches, with the session going
+through JSON between batches as the server stores it. Each scenario is a rectangular
+corridor loop with WiFi APs and iBeacons placed at random around it, a log-distance
+radio with a fixed spatial shadowing field per transmitter, body shadowing (a
+transmitter behind the walker is weaker) and per-scan noise; a KNN model fitted on a
+survey every 2 m of the loop (3 scans per point, averaged); a walker whose PDR has a
+heading bias that drifts linearly, a step-length bias and white noise, and who sends
+steps **without** std fields (the server's defaults apply).
+
+Parameters are drawn per scenario from ranges; the ``tune`` and ``heldout`` ranges do
+not overlap on any parameter (drift rate, initial bias, length bias, heading noise, radio
+noise and shadowing, transmitter count, loop size, laps), and seeds differ. Tracker
+defaults are chosen on ``tune`` only; ``heldout`` reports.
+
+With ``--fixes gaussian`` the fixes are unbiased: the truth plus N(0, σ²I) with the
+honest covariance σ²I (the fix quality drawn from the split's range); that is where
+the share of refused fixes must stay below 5 %.
+
+Figures per method: mean / p90 error (m) over every estimate of every scenario; the
+position NEES (2-D; mean over step estimates, 2 is consistent); the NIS of the fixes
+(mean over fixes, 2 is consistent; before any inflation); the share of fixes refused by
+the innovation gate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
+from server.estimation.session import SessionEstimator  # noqa: E402
+from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
+
+FILTERS = ("ekf", "ukf", "pf", "skpf", "ekf-xy", "ukf-xy", "pf-xy", "skpf-xy", "kf", "fkf")
+
+#: (low, high) per parameter; a "±" parameter gets a random sign
+RANGES = {
+    "tune": {
+        "drift_deg_per_step": (0.0, 0.08), "bias0_deg": (0.0, 3.0), "length_bias": (0.0, 0.03),
+        "heading_white_deg": (2.0, 4.0), "scan_noise_db": (2.0, 3.0), "shadow_db": (2.0, 3.0),
+        "n_tx": (9, 12), "width_m": (30.0, 40.0), "height_m": (14.0, 20.0), "laps": (1, 1),
+        "gauss_fix_std_m": (1.0, 2.0),
+    },
+    "heldout": {
+        "drift_deg_per_step": (0.1, 0.25), "bias0_deg": (4.0, 10.0), "length_bias": (0.04, 0.10),
+        "heading_white_deg": (4.5, 7.0), "scan_noise_db": (3.5, 5.0), "shadow_db": (3.5, 5.0),
+        "n_tx": (5, 8), "width_m": (42.0, 60.0), "height_m": (21.0, 30.0), "laps": (2, 3),
+        "gauss_fix_std_m": (2.2, 3.5),
+    },
+}
+SIGNED = ("drift_deg_per_step", "bias0_deg", "length_bias")
+SEED_BASE = {"tune": 10_000, "heldout": 20_000}
+
+
+@dataclass(frozen=True)
+class Scenario:
+    split: str
+    index: int
+    seed: int
+    drift_deg_per_step: float
+    bias0_deg: float
+    length_bias: float
+    heading_white_deg: float
+    scan_noise_db: float
+    shadow_db: float
+    n_tx: int
+    width_m: float
+    height_m: float
+    laps: int
+    gauss_fix_std_m: float
+
+
+def draw(split: str, index: int) -> Scenario:
+    seed = SEED_BASE[split] + index
+    rng = np.random.default_rng(seed)
+    vals: dict = {}
+    for k, (lo, hi) in RANGES[split].items():
+        if isinstance(lo, int):
+            vals[k] = int(rng.integers(lo, hi + 1))
+        else:
+            v = float(rng.uniform(lo, hi))
+            vals[k] = v * (1 if k not in SIGNED or rng.random() < 0.5 else -1)
+    return Scenario(split, index, seed, **vals)
+
+
+# --------------------------------------------------------------------------- world
+class World:
+    """The loop's corridor centre-line is the rectangle [0, W] × [0, H]."""
+
+    def __init__(self, sc: Scenario):
+        rng = np.random.default_rng(sc.seed + 1)
+        self.sc = sc
+        W, H = sc.width_m, sc.height_m
+        n = sc.n_tx
+        # transmitters at random around the loop, up to 6 m off the corridor; 1 in 3 an iBeacon
+        t = rng.uniform(0, 2 * (W + H), n)
+        self.tx_xy = np.array([self.loop_point(u) for u in t]) + rng.uniform(-6, 6, (n, 2))
+        self.tx_ids = [f"ble:b{i}" if i % 3 == 0 else f"wifi:ap{i}" for i in range(n)]
+        self.r0 = rng.uniform(-45.0, -35.0, n)
+        self.gamma = rng.uniform(2.0, 3.0, n)
+        # fixed spatial shadowing: per transmitter a sum of 8 random plane waves (4-15 m)
+        k = 8
+        lam = rng.uniform(4.0, 15.0, (n, k))
+        ang = rng.uniform(0, 2 * math.pi, (n, k))
+        self.kx, self.ky = 2 * math.pi / lam * np.cos(ang), 2 * math.pi / lam * np.sin(ang)
+        self.phase = rng.uniform(0, 2 * math.pi, (n, k))
+        self.shadow_amp = sc.shadow_db * math.sqrt(2.0 / k)
+
+    def loop_point(self, u: float) -> np.ndarray:
+        W, H = self.sc.width_m, self.sc.height_m
+        u = u % (2 * (W + H))
+        if u < W:
+            return np.array([u, 0.0])
+        if u < W + H:
+            return np.array([W, u - W])
+        if u < 2 * W + H:
+            return np.array([W - (u - W - H), H])
+        return np.array([0.0, H - (u - 2 * W - H)])
+
+    def rss(self, xy, heading_deg: float | None, rng: np.random.Generator | None) -> dict[str, float]:
+        d = np.maximum(np.hypot(*(self.tx_xy - xy).T), 1.0)
+        shadow = self.shadow_amp * np.cos(self.kx * xy[0] + self.ky * xy[1] + self.phase).sum(axis=1)
+        v = self.r0 - 10 * self.gamma * np.log10(d) + shadow
+        if heading_deg is not None:  # body shadowing: up to 5 dB for a transmitter behind
+            h = math.radians(heading_deg)
+            to_tx = (self.tx_xy - xy) / d[:, None]
+            v -= 5.0 * 0.5 * (1 - (to_tx[:, 0] * math.sin(h) + to_tx[:, 1] * math.cos(h)))
+        if rng is not None:
+            v = v + rng.normal(0.0, self.sc.scan_noise_db, v.size)
+        return {k: float(x) for k, x, dd in zip(self.tx_ids, v, d, strict=True) if x > -95.0 and dd < 60}
+
+    def site(self) -> SiteMap:
+        return SiteMap(beacons={k: Beacon(k, float(x), float(y), 0, float(r0), float(g))
+                                for k, (x, y), r0, g in zip(self.tx_ids, self.tx_xy, self.r0, self.gamma, strict=True)
+                                if k.startswith("ble:")})
+
+    def model(self):
+        rng = np.random.default_rng(self.sc.seed + 2)
+        rows = []
+        for u in np.arange(0.0, 2 * (self.sc.width_m + self.sc.height_m), 2.0):
+            p = self.loop_point(float(u))
+            scans = [self.rss(p, None, rng) for _ in range(3)]
+            keys = set().union(*scans)
+            rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
+                         "rss": {k: float(np.mean([s.get(k, -100.0) for s in scans])) for k in keys}})
+        return make_model("knn", {}, use_heading=False, kinds=None).fit(FingerprintSet.from_rows(rows))
+
+
+@dataclass
+class Walk:
+    truth: np.ndarray  # (n + 1, 2)
+    steps: list[Step]
+    scans: list[Scan]
+    scan_truth: np.ndarray
+
+
+def walk(world: World) -> Walk:
+    sc = world.sc
+    rng = np.random.default_rng(sc.seed + 3)
+    per = 2 * (sc.width_m + sc.height_m)
+    true_len = rng.uniform(0.62, 0.78)
+    u, t, k = 0.0, 0.0, 0
+    truth = [world.loop_point(0.0)]
+    steps, scans, scan_truth = [], [], []
+    while u + true_len <= sc.laps * per:
+        u += true_len * (1 + 0.05 * rng.standard_normal())
+        a, b = truth[-1], world.loop_point(u)
+        t += 0.55
+        k += 1
+        true_h = math.degrees(math.atan2(b[0] - a[0], b[1] - a[1]))
+        truth.append(b)
+        err_h = sc.bias0_deg + sc.drift_deg_per_step * k + sc.heading_white_deg * rng.standard_normal()
+        length = float(np.hypot(*(b - a))) * (1 + sc.length_bias) + 0.05 * rng.standard_normal()
+        steps.append(Step(t, max(length, 0.05), (true_h + err_h) % 360.0))  # no std fields: defaults
+        if k % 2 == 0:
+            scans.append(Scan(t + 0.1, world.rss(b, true_h, rng)))
+            scan_truth.append(b)
+    return Walk(np.array(truth), steps, scans, np.array(scan_truth))
+
+
+class ModelFixes:
+    def __init__(self, model, cov_scale: float = 1.0):
+        self.model, self.cov_scale = model, cov_scale
+
+    def fix(self, scan: Scan, near: Area | None) -> Fix:
+        if not scan.rss:
+            raise NoFix("the scan heard nothing")
+        f = self.model.locate(scan.rss, near=None if near is None else (near.x, near.y),
+                              radius_m=None if near is None else near.radius_m)
+        return Fix(f.x, f.y, f.floor, np.asarray(f.covariance) * self.cov_scale)
+
+
+class GaussianFixes:
+    """Unbiased fixes with their honest covariance."""
+
+    def __init__(self, w: Walk, std_m: float, seed: int):
+        rng = np.random.default_rng(seed)
+        self.by_t = {s.t: p + std_m * rng.standard_normal(2) for s, p in zip(w.scans, w.scan_truth, strict=True)}
+        self.cov = np.eye(2) * std_m**2
+
+    def fix(self, scan: Scan, near: Area | None) -> Fix:
+        z = self.by_t[scan.t]
+        return Fix(float(z[0]), float(z[1]), 0, self.cov)
+
+
+# --------------------------------------------------------------------------- running
+#: tracker keyword arguments per filter name (``--set``)
+PARAMS: dict[str, dict] = {}
+
+
+def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> dict:
+    est = SessionEstimator(name, seed=7, tracker_params=PARAMS.get(name))
+    est.start(w.truth[0], None, 0, [], None, "init")
+    steps, scans = list(w.steps), list(w.scans)
+    truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
+    truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
+    errors, nees, innovations = [], [], []
+    t_end = batch_s
+    while steps or scans:
+        bs = [s for s in steps if s.t < t_end]
+        bc = [s for s in scans if s.t < t_end]
+        steps, scans = steps[len(bs):], scans[len(bc):]
+        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+        est.innovations = []
+        out = est.apply_batch(bs, bc, fixes, site)
+        innovations += est.innovations
+        for e in out.estimates:
+            d = np.array([e.x, e.y]) - truth_by_t[e.t]
+            errors.append(float(np.hypot(*d)))
+            if e.source == "step":
+                nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+        t_end += batch_s
+    nis = [d2 for d2, _ in innovations]
+    return {"errors": errors, "nees": nees, "nis": nis, "refused": sum(not ok for _, ok in innovations),
+            "fixes": len(innovations), "bias_deg": getattr(est.tracker, "heading_bias_deg", None)}
+
+
+def pdr_errors(w: Walk) -> list[float]:
+    pos = np.cumsum([w.truth[0]] + [step_displacement(s.length_m, s.heading_deg) for s in w.steps], axis=0)
+    return np.hypot(*(pos[1:] - w.truth[1:]).T).tolist()
+
+
+def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict:
+    world = World(sc)
+    w = walk(world)
+    if fix_kind == "gaussian":
+        fixes = GaussianFixes(w, sc.gauss_fix_std_m, sc.seed + 4)
+        fp = [float(np.hypot(*(fixes.by_t[s.t] - p))) for s, p in zip(w.scans, w.scan_truth, strict=True)]
+        site = SiteMap()
+    else:
+        fixes = ModelFixes(world.model(), cov_scale)
+        fp = []
+        for s, p in zip(w.scans, w.scan_truth, strict=True):
+            try:
+                f = fixes.fix(s, None)
+            except Exception:  # noqa: BLE001 - nothing known heard
+                continue
+            fp.append(float(np.hypot(f.x - p[0], f.y - p[1])))
+        site = world.site()
+    out = {"pdr-only": {"errors": pdr_errors(w)}, "fingerprint-only": {"errors": fp}}
+    for name in filters:
+        out[name] = run_filter(name, w, fixes, site)
+    return out
+
+
+def fix_nis(sc: Scenario) -> list[float]:
+    """e R⁻¹ e of the model's raw fixes against the truth (for the covariance scale)."""
+    world = World(sc)
+    w = walk(world)
+    fixes = ModelFixes(world.model())
+    out = []
+    for s, p in zip(w.scans, w.scan_truth, strict=True):
+        try:
+            f = fixes.fix(s, None)
+        except NoFix:
+            continue
+        e = f.mean - p
+        out.append(float(e @ np.linalg.solve(np.asarray(f.covariance), e)))
+    return out
+
+
+def table(results: list[dict], methods) -> list[dict]:
+    rows = []
+    for m in methods:
+        errs = np.concatenate([r[m]["errors"] for r in results if m in r])
+        row = {"method": m, "mean": float(errs.mean()), "p90": float(np.percentile(errs, 90))}
+        if "nees" in results[0].get(m, {}):
+            row["nees"] = float(np.mean(np.concatenate([r[m]["nees"] for r in results])))
+            row["nees_p50"] = float(np.median(np.concatenate([r[m]["nees"] for r in results])))
+            nis = np.concatenate([r[m]["nis"] for r in results])
+            row["nis"] = float(nis.mean()) if nis.size else float("nan")
+            fx = sum(r[m]["fixes"] for r in results)
+            row["refused_pct"] = 100.0 * sum(r[m]["refused"] for r in results) / max(fx, 1)
+        rows.append(row)
+    return rows
+
+
+def markdown(rows: list[dict], title: str) -> str:
+    pdr = next(r["mean"] for r in rows if r["method"] == "pdr-only")
+    fp = next(r["mean"] for r in rows if r["method"] == "fingerprint-only")
+    lines = [f"{title}", "", "| method | mean m | p90 m | vs PDR | vs fingerprint | NEES mean | NEES p50 | NIS mean "
+             "| refused |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "nees" in r:
+            extra = (f"{100 * (r['mean'] / pdr - 1):+.0f} % | {100 * (r['mean'] / fp - 1):+.0f} % | {r['nees']:.2f} | "
+                     f"{r['nees_p50']:.2f} | {r['nis']:.2f} | {r['refused_pct']:.1f} % |")
+        else:
+            extra = "— | — | — | — | — | — |"
+        lines.append(f"| {r['method']} | {r['mean']:.2f} | {r['p90']:.2f} | {extra}")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--split", choices=sorted(RANGES), default="heldout")
+    ap.add_argument("--n", type=int, default=12, help="scenarios")
+    ap.add_argument("--first", type=int, default=0, help="index of the first scenario")
+    ap.add_argument("--filters", default=",".join(FILTERS))
+    ap.add_argument("--fixes", choices=("knn", "gaussian", "both"), default="both")
+    ap.add_argument("--cov-scale", type=float, default=None,
+                    help="multiply the KNN covariance by this (default: fitted on 12 tune scenarios so the "
+                         "fixes' mean NIS against the truth is 2)")
+    ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
+                    help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
+    ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
+    a = ap.parse_args()
+    filters = [f for f in a.filters.split(",") if f]
+    for item in a.set:
+        key, value = item.split("=", 1)
+        flt, param = key.split(".", 1)
+        PARAMS.setdefault(flt, {})[param] = float(value)
+    scenarios = [draw(a.split, i) for i in range(a.first, a.first + a.n)]
+    cov_scale = a.cov_scale
+    if cov_scale is None and a.fixes != "gaussian":
+        nis = np.concatenate([fix_nis(draw("tune", i)) for i in range(12)])
+        cov_scale = float(np.mean(nis) / 2.0)
+        print(f"KNN covariance scale fitted on tune scenarios 0-11: {cov_scale:.2f} (fixes' mean NIS 2)")
+    report = {"split": a.split, "scenarios": [asdict(s) for s in scenarios], "cov_scale": cov_scale}
+    kinds = ("knn", "gaussian") if a.fixes == "both" else (a.fixes,)
+    for kind in kinds:
+        t0 = time.perf_counter()
+        results = [run_scenario(s, filters, kind, cov_scale or 1.0) for s in scenarios]
+        rows = table(results, ["pdr-only", "fingerprint-only", *filters])
+        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {kind} fixes "
+                 f"({time.perf_counter() - t0:.0f} s)")
+        print(markdown(rows, title))
+        print()
+        report[kind] = rows
+        biases = {f: [round(r[f]["bias_deg"], 1) for r in results if r[f].get("bias_deg") is not None]
+                  for f in filters}
+        report[f"{kind}_final_bias_deg"] = {f: b for f, b in biases.items() if b}
+    if a.out:
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        a.out.write_text(json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
