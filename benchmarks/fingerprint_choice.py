@@ -31,15 +31,16 @@ CHOOSE = {2, 6, 7, 14}
 REPORT = {4, 8, 10, 13, 17, 18}
 
 CANDIDATES: dict[str, tuple[str, dict]] = {
-    "knn (current default)": ("knn", {}),
-    "wknn powed sorensen": ("wknn", {"missing": "powed", "distance": "sorensen"}),
-    "wknn powed euclidean": ("wknn", {"missing": "powed", "distance": "euclidean"}),
-    "wknn exponential sorensen": ("wknn", {"missing": "exponential", "distance": "sorensen"}),
-    "wknn positive sorensen": ("wknn", {"missing": "floor", "distance": "sorensen"}),
+    "knn (previous default)": ("knn", {}),
+    "wknn powed sorensen (default)": ("wknn", {}),
+    "wknn powed sorensen, no offset estimate": ("wknn", {"offset_estimate": False}),
+    "wknn powed sorensen, offset search ±6 dB": ("wknn", {"offset_estimate": False, "offset_search_db": 6.0}),
+    "wknn powed sorensen, no cleaning": ("wknn", {"dedupe": False, "min_tx_rows": 0}),
+    "wknn powed sorensen, SVC floor": ("wknn", {"floor_classifier": "svc"}),
+    "wknn powed euclidean": ("wknn", {"distance": "euclidean"}),
+    "wknn exponential sorensen": ("wknn", {"missing": "exponential"}),
+    "wknn positive sorensen": ("wknn", {"missing": "floor"}),
     "wknn positive euclidean": ("wknn", {"missing": "floor", "distance": "euclidean"}),
-    "wknn powed sorensen offset±6": ("wknn", {"missing": "powed", "distance": "sorensen", "offset_search_db": 6.0}),
-    "wknn powed sorensen no-clean": ("wknn", {"missing": "powed", "distance": "sorensen", "dedupe": False,
-                                              "min_tx_rows": 0}),
 }
 
 
@@ -82,10 +83,12 @@ def run_model(name, algo, params, train, test) -> dict:
 
 
 def table(rows) -> str:
-    out = ["| model | mean m | p50 m | p90 m | floor | building | fit s | ms/query |", "|---|---|---|---|---|---|---|---|"]
+    out = ["| model | mean m | p50 m | p90 m | floor | building | NIS p50 | fit s | ms/query |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['model']} | {r['mean']:.2f} | {r['p50']:.2f} | {r['p90']:.2f} | {100 * r['floor']:.1f} % "
-                   f"| {100 * r['building']:.1f} % | {r['fit_s']:.1f} | {r['ms_per_q']:.2f} |")
+                   f"| {100 * r['building']:.1f} % | {r.get('nis_median', float('nan')):.2f} | {r['fit_s']:.1f} "
+                   f"| {r['ms_per_q']:.2f} |")
     return "\n".join(out)
 
 
@@ -93,8 +96,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--stage", default="choose", choices=["choose", "report", "both"])
     ap.add_argument("--sample", type=int, default=0, help="subsample test rows (0 = all)")
-    ap.add_argument("--only", default="", help="comma-separated candidate names (substring match)")
-    ap.add_argument("--report-models", default="wknn powed sorensen,wknn powed sorensen offset±6,knn (current default)")
+    ap.add_argument("--only", default="", help="semicolon-separated substrings of candidate names")
+    ap.add_argument("--report-models", help="semicolon-separated candidate names measured on REPORT",
+                    default="wknn powed sorensen (default);wknn powed sorensen, no offset estimate;knn (previous default)")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(DATA)
     user = fs.user.astype(int)
@@ -110,9 +114,9 @@ def main(argv=None) -> int:
               f"test {len(test)} rows (users {sorted(held)})", flush=True)
         rows = [baseline(train, test)]
         print(json.dumps(rows[-1]), flush=True)
-        names = list(CANDIDATES) if stage == "choose" else [n.strip() for n in a.report_models.split(",")]
+        names = list(CANDIDATES) if stage == "choose" else [n.strip() for n in a.report_models.split(";")]
         if a.only:
-            names = [n for n in names if any(o in n for o in a.only.split(","))]
+            names = [n for n in names if any(o in n for o in a.only.split(";"))]
         for name in names:
             algo, params = CANDIDATES[name]
             rows.append(run_model(name, algo, params, train, test))

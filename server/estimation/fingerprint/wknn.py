@@ -20,10 +20,13 @@ transmitters): with features ≥ 0 and 0 = not heard,
 
 so a query costs one gather of its heard columns (n × heard), no scikit-learn call.
 
-**Device offset.** ``offset_search_db`` (e.g. 6): the query is also tried shifted by
-a few dB (every ``offset_step_db`` within ±``offset_search_db``) and the shift whose
-nearest fingerprint matches best is kept — a per-query estimate of the phone's RSS
-offset, at the cost of one distance pass per tried shift.
+**Device offset.** ``offset_estimate`` (default): the phone's RSS offset is estimated
+per query as the median difference (dB) between the query and its ``offset_neighbours``
+nearest fingerprints over the transmitters both hear; the query is shifted by it and
+matched again, ``offset_iterations`` times (each converges a little further: the first
+neighbours of a shifted scan are biased towards the shift). ``offset_search_db``
+(off by default): instead try shifts every ``offset_step_db`` within ±that and keep the
+one whose nearest fingerprint matches best (one distance pass per shift).
 
 **Cleaning** at fit: exact duplicate rows (same place, same scan) are dropped and
 transmitters heard by fewer than ``min_tx_rows`` fingerprints are ignored.
@@ -37,6 +40,7 @@ from .base import FingerprintModel, TrainingData
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
+CV_FOLDS = 5
 _CHI2_2_MEDIAN = 2.0 * np.log(2.0)  # median of a χ² with 2 degrees of freedom (mean 2)
 
 
@@ -55,8 +59,9 @@ class WKNNModel(FingerprintModel):
     def __init__(self, k: int | None = None, distance: str = "sorensen", building_k: int = 10,
                  floor_k: int = 10, offset_search_db: float = 0.0, offset_step_db: float = 3.0,
                  min_tx_rows: int = 2, dedupe: bool = True, k_grid: tuple[int, ...] = (1, 2, 3, 4, 5, 7, 9),
-                 offset_estimate: bool = True, offset_neighbours: int = 5, offset_max_db: float = 15.0,
-                 calibrate: str | None = "rows", cv_rows: int = 1500,
+                 offset_estimate: bool = True, offset_neighbours: int = 10, offset_max_db: float = 15.0,
+                 offset_iterations: int = 3,
+                 calibrate: str | None = "points", cv_rows: int = 1500,
                  missing: str = "powed", floor_classifier: str | None = None, **common):
         super().__init__(missing=missing, floor_classifier=floor_classifier, **common)
         if distance not in DISTANCES:
@@ -77,6 +82,7 @@ class WKNNModel(FingerprintModel):
         self.offset_estimate = bool(offset_estimate)
         self.offset_neighbours = int(offset_neighbours)
         self.offset_max_db = float(offset_max_db)
+        self.offset_iterations = int(offset_iterations)
 
     # ---- fit ---------------------------------------------------------------------------
     def _fit(self, X, H, data: TrainingData) -> None:
@@ -110,7 +116,7 @@ class WKNNModel(FingerprintModel):
         self.row_building_ = self.group_building_[self.row_group_] if len(self.row_group_) else self.row_group_
 
     def _cross_validate(self, data: TrainingData, keep_rows: np.ndarray) -> None:
-        """Internal 3-fold cross-validation (the floor taken as known).
+        """Internal 5-fold cross-validation (the floor taken as known).
 
         ``k_`` (when ``k`` is None): the grid value with the lowest mean error over
         held-out *reference points* (all their scans out of the map): a walker's scan is
@@ -126,7 +132,7 @@ class WKNNModel(FingerprintModel):
         n = len(fs)
         rng = np.random.default_rng(0)
         n_rp = int(self.row_rp_.max()) + 1 if n else 0
-        fold_rp = (rng.permutation(n_rp) % 3)[self.row_rp_]
+        fold_rp = (rng.permutation(n_rp) % CV_FOLDS)[self.row_rp_]
         grid = self.k_grid if self.k is None else (self.k,)
         errs, nis_rp, count = self._cv_pass(fold_rp, grid, rng)
         if count == 0:
@@ -139,10 +145,10 @@ class WKNNModel(FingerprintModel):
         groups = fs.user if fs.user is not None else fs.device
         if groups is not None and len(set(groups.astype(str))) >= 3:
             names = np.unique(groups.astype(str))
-            fold_of = {g: i % 3 for i, g in enumerate(rng.permutation(names))}
+            fold_of = {g: i % CV_FOLDS for i, g in enumerate(rng.permutation(names))}
             fold_row = np.array([fold_of[g] for g in groups.astype(str)])
         else:
-            fold_row = rng.integers(0, 3, n)
+            fold_row = rng.integers(0, CV_FOLDS, n)
         _, nis_row, count_row = self._cv_pass(fold_row, (self.k_,), rng)
         med = lambda v: float(np.median(v)) if len(v) else float("nan")  # noqa: E731
         self.cv_nis_median_ = {"points": med(nis_rp[best]), "rows": med(nis_row[0]),
@@ -152,7 +158,7 @@ class WKNNModel(FingerprintModel):
             self.cov_scale_ = ref / _CHI2_2_MEDIAN
 
     def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[np.ndarray], int]:
-        """Sum of errors per k over 3 folds, the NIS values (raw covariance) per k, and
+        """Sum of errors per k over the folds, the NIS values (raw covariance) per k, and
         the count of held-out scans."""
         X_all, H_all = self.XT_.T, self.H_
         rp_all, grp_all = self.row_rp_, self.row_group_
@@ -160,13 +166,13 @@ class WKNNModel(FingerprintModel):
         nis: list[list[np.ndarray]] = [[] for _ in grid]
         count = 0
         try:
-            for f in range(3):
+            for f in range(CV_FOLDS):
                 te = np.flatnonzero(fold == f)
                 tr = np.flatnonzero(fold != f)
                 if len(te) == 0 or len(tr) == 0:
                     continue
-                if len(te) > self.cv_rows // 3:
-                    te = np.sort(rng.choice(te, self.cv_rows // 3, replace=False))
+                if len(te) > self.cv_rows // CV_FOLDS:
+                    te = np.sort(rng.choice(te, self.cv_rows // CV_FOLDS, replace=False))
                 self._set_matrix(X_all[tr], None if H_all is None else H_all[tr], rp_all[tr], grp_all[tr])
                 Hq = None if H_all is None else H_all[te] / max(self.heading_weight_, 1e-12)
                 D = self._distances(X_all[te], Hq)
@@ -235,11 +241,17 @@ class WKNNModel(FingerprintModel):
         """Distances with the per-query RSS offset (see the module docstring)."""
         D = self._distances(Q, Hq)
         if self.offset_estimate:
-            delta = self._estimate_offset(Q, D)
-            redo = np.abs(delta) >= 1.0
-            if redo.any():
-                R = self._decode(Q[redo]) + delta[redo][:, None]
-                D[redo] = self._distances(self.encoder_.transform(R), None if Hq is None else Hq[redo])
+            R0 = self._decode(Q)
+            total = np.zeros(len(Q))
+            Qs = Q
+            for _ in range(self.offset_iterations):
+                delta = self._estimate_offset(Qs, D)
+                redo = np.abs(delta) >= 0.5
+                if not redo.any():
+                    break
+                total = np.clip(total + np.where(redo, delta, 0.0), -self.offset_max_db, self.offset_max_db)
+                Qs = self.encoder_.transform(R0 + total[:, None])
+                D[redo] = self._distances(Qs[redo], None if Hq is None else Hq[redo])
         if self.offset_search_db <= 0:
             return D
         R = self._decode(Q)

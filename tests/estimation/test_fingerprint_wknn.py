@@ -1,0 +1,203 @@
+"""The hierarchical weighted KNN (wknn): building hierarchy, device-offset robustness,
+calibrated covariance, speed-path consistency, and artifact safety."""
+
+import hashlib
+import io
+import json
+import pickle
+
+import numpy as np
+import pytest
+
+from server.estimation.fingerprint import ArtifactError, FingerprintSet, from_bytes, make_model, to_bytes
+from server.estimation.fingerprint.artifact import LIBRARY_VERSION, MAGIC
+from tests.helpers.synthetic import make_site
+
+
+def _rename(site, prefix):
+    for t in site.transmitters:
+        kind, name = t["id"].split(":", 1)
+        t["id"] = f"{kind}:{prefix}{name}"
+    return site
+
+
+@pytest.fixture(scope="module")
+def campus():
+    """Two buildings 60 m apart, both with floors 0 and 1 and their own transmitters;
+    building 1's scans also hear one of building 0's access points, weakly."""
+    b0 = _rename(make_site(seed=11, noise_db=2.0), "b0")
+    b1 = _rename(make_site(seed=12, noise_db=2.0), "b1")
+    shared = dict(b0.transmitters[0])
+    rows = []
+    for b, site in ((0, b0), (1, b1)):
+        fs = site.survey(scans_per_rp=4, seed=3 + b)
+        for r in fs.to_rows():
+            r["building"] = b
+            r["label"] = f"b{b}-{r['label']}"
+            r["x"] += 60.0 * b
+            if b == 1:
+                r["rss"][shared["id"]] = -95.0
+            rows.append(r)
+    return b0, b1, FingerprintSet.from_rows(rows)
+
+
+def test_a_scan_in_building_1_never_answers_building_0(campus):
+    b0, b1, fs = campus
+    model = make_model("wknn").fit(fs)
+    rng = np.random.default_rng(0)
+    scans, truth_floor = [], []
+    for _, x, y, f in b1.rp:
+        for _ in range(3):
+            s = b1.scan(x, y, f, None, rng, noise_db=4.0)
+            s[b0.transmitters[0]["id"]] = -70.0  # building 0's AP heard strongly through a window
+            scans.append(s)
+            truth_floor.append(f)
+    pred = model.predict(scans)
+    assert np.all(pred.building == 1)
+    fixes = model.locate_many(scans)
+    assert all(fx.reference_point.startswith("b1-") for fx in fixes)
+    assert all(c.label.startswith("b1-") for fx in fixes for c in fx.candidates)
+    assert np.mean(pred.floor == np.array(truth_floor)) >= 0.95
+    assert np.all(pred.x > 50.0)  # positions inside building 1 (x offset by 60 m)
+
+
+@pytest.fixture(scope="module")
+def site_and_model():
+    site = make_site(nx=7, ny=5, seed=4, noise_db=2.0)
+    fs = site.survey(scans_per_rp=6, seed=1)
+    return site, make_model("wknn").fit(fs)
+
+
+@pytest.mark.parametrize("shift_db", [8.0, -8.0])
+def test_a_shifted_scan_answers_close_to_the_unshifted_one(site_and_model, shift_db):
+    site, model = site_and_model
+    rng = np.random.default_rng(2)
+    scans, truth = [], []
+    for _, x, y, f in site.rp:
+        scans.append(site.scan(x, y, f, None, rng))
+        truth.append((x, y, f))
+    shifted = [{t: v + shift_db for t, v in s.items()} for s in scans]
+    a, b = model.predict(scans), model.predict(shifted)
+    t = np.array(truth)
+    err_a = np.hypot(a.x - t[:, 0], a.y - t[:, 1])
+    err_b = np.hypot(b.x - t[:, 0], b.y - t[:, 1])
+    moved = np.hypot(a.x - b.x, a.y - b.y)
+    assert np.mean(b.floor == t[:, 2]) >= 0.95
+    assert err_b.mean() <= err_a.mean() + 2.5, (err_a.mean(), err_b.mean())
+    assert np.median(moved) <= 2.5
+    # without the per-query offset estimate the shift hurts clearly more
+    plain = make_model("wknn", {"offset_estimate": False, "k": model.k_}).fit(model_training_set(site))
+    c = plain.predict(shifted)
+    err_c = np.hypot(c.x - t[:, 0], c.y - t[:, 1])
+    assert err_b.mean() <= 0.75 * err_c.mean(), (err_b.mean(), err_c.mean())
+
+
+def model_training_set(site):
+    return site.survey(scans_per_rp=6, seed=1)
+
+
+def test_covariance_is_calibrated_on_held_out_reference_points():
+    """Survey three quarters of the grid, query the rest: the normalised innovation
+    squared rᵀC⁻¹r of the fixes averages near 2 (a calibrated 2-D Gaussian)."""
+    site = make_site(nx=7, ny=5, seed=2, noise_db=2.0)
+    full = site.survey(scans_per_rp=6, seed=2)
+    held = {lab for k, (lab, _, _, _) in enumerate(site.rp) if k % 4 == 0}
+    train = full.subset(np.array([lab not in held for lab in full.label]))
+    rng = np.random.default_rng(3)
+    scans, truth = [], []
+    for lab, x, y, f in site.rp:
+        if lab in held:
+            for _ in range(5):
+                scans.append(site.scan(x, y, f, None, rng))
+                truth.append((x, y))
+    t = np.array(truth)
+
+    def mean_nis(model):
+        pred = model.predict(scans)
+        r = pred.xy - t
+        return float(np.mean(np.einsum("ni,nij,nj->n", r, np.linalg.inv(pred.covariance), r)))
+
+    calibrated = make_model("wknn").fit(train)
+    raw = make_model("wknn", {"calibrate": None}).fit(train)
+    nis = mean_nis(calibrated)
+    assert 1.0 <= nis <= 3.0, nis
+    assert abs(np.log(nis / 2)) <= abs(np.log(mean_nis(raw) / 2)) + 1e-9
+    assert calibrated.cov_scale_ > 0 and raw.cov_scale_ == 1.0
+
+
+def test_k_is_chosen_by_cross_validation_and_a_given_k_is_kept(site_and_model):
+    site, model = site_and_model
+    assert model.k_ in model.k_grid and len(model.k_cv_errors_) == len(model.k_grid)
+    fixed = make_model("wknn", {"k": 2, "calibrate": None}).fit(model_training_set(site))
+    assert fixed.k_ == 2
+
+
+def test_duplicates_and_rare_transmitters_are_cleaned(site_and_model):
+    site, _ = site_and_model
+    fs = site.survey(scans_per_rp=3, seed=5)
+    twice = FingerprintSet.from_rows(fs.to_rows() + fs.to_rows()[:10] + [
+        {"x": 0.0, "y": 0.0, "floor": 0, "label": site.rp[0][0], "rss": {"wifi:lonely": -50.0, **fs.scans()[0]}}])
+    model = make_model("wknn", {"k": 3, "calibrate": None}).fit(twice)
+    assert model.XT_.shape[1] == len(fs) + 1  # the 10 duplicates dropped, the new row kept
+    lonely = model.tx_ids_.index("wifi:lonely")
+    assert not model.tx_active_[lonely]
+
+
+def test_one_query_and_a_batch_agree(site_and_model):
+    site, model = site_and_model
+    scans = site.survey(scans_per_rp=1, seed=9).scans()[:12]
+    batch = model.locate_many(scans)
+    for s, fb in zip(scans, batch, strict=True):
+        fx = model.locate(s)
+        assert (fx.x, fx.y, fx.floor) == pytest.approx((fb.x, fb.y, fb.floor))
+
+
+# ---- artifacts: no code runs when loading ------------------------------------------------
+def _blob_with(payload: bytes) -> bytes:
+    return MAGIC + hashlib.sha256(payload).digest() + payload
+
+
+def _npz(doc: dict) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, __doc__=np.frombuffer(json.dumps(doc).encode(), dtype=np.uint8))
+    return buf.getvalue()
+
+
+class _Boom:
+    def __reduce__(self):
+        return (pytest.fail, ("unpickling ran code",))
+
+
+def test_a_pickled_artifact_is_refused_without_being_run():
+    payload = pickle.dumps(_Boom())
+    for blob in (b"LOCFP1\n" + hashlib.sha256(payload).digest() + payload, _blob_with(payload)):
+        with pytest.raises(ArtifactError):
+            from_bytes(blob)
+    with pytest.raises(ArtifactError, match="retrain"):
+        from_bytes(b"LOCFP1\n" + hashlib.sha256(payload).digest() + payload)
+
+
+def test_a_tampered_artifact_naming_another_class_is_refused():
+    doc = {"library_version": LIBRARY_VERSION,
+           "model": {"$o": "os:system", "state": {"cmd": "echo pwned"}}}
+    with pytest.raises(ArtifactError, match="may not be loaded"):
+        from_bytes(_blob_with(_npz(doc)))
+    doc["model"] = {"$o": "subprocess:Popen", "state": {}}
+    with pytest.raises(ArtifactError, match="may not be loaded"):
+        from_bytes(_blob_with(_npz(doc)))
+
+
+def test_an_npz_with_an_object_array_is_refused():
+    buf = io.BytesIO()
+    np.savez(buf, __doc__=np.array([_Boom()], dtype=object))
+    with pytest.raises(ArtifactError):
+        from_bytes(_blob_with(buf.getvalue()))
+
+
+def test_an_artifact_of_another_library_version_is_refused(site_and_model):
+    _, model = site_and_model
+    blob = to_bytes(model)
+    assert isinstance(from_bytes(blob), type(model))
+    doc = {"library_version": "fingerprint-0.1", "model": None}
+    with pytest.raises(ArtifactError, match="retrain"):
+        from_bytes(_blob_with(_npz(doc)))
