@@ -11,8 +11,11 @@ const CHI2_95 = 5.991; // 95 % of a 2-D Gaussian lies inside this squared Mahala
 const S = {
   key: null, scope: null, sites: [], site: null, floor: null, rps: [], txs: [], models: [], sessions: [],
   tracks: new Map(), // session id -> {pts: [{idx, x, y, floor, covariance}], color, status}
-  streams: [], bounds: null, replayTimer: null, algorithms: [],
+  streams: [], bounds: null, replayTimer: null, algorithms: [], coverage: "",
 };
+// Coverage layer: a transmitter's RSS from the log-distance model the server's radio code uses
+// (R0 at 1 m, exponent γ; -45 dBm and 2.5 when the transmitter has none), walls ignored.
+const DEFAULT_R0_DBM = -45.0, DEFAULT_GAMMA = 2.5, HEAT_TOP = -30, HEAT_BOTTOM = -100;
 
 const $ = (id) => document.getElementById(id);
 
@@ -122,6 +125,7 @@ async function start() {
   } else {
     $("sites-panel").hidden = true;
     $("floor-label").hidden = true;
+    $("coverage-label").hidden = true;
     $("site-name").textContent = "my sessions";
     drawMap();
     await loadSessions();
@@ -194,13 +198,47 @@ async function selectSite(id) {
   }));
   S.floor = sorted[0];
   sel.value = String(S.floor);
+  S.coverage = "";
+  fillCoverage();
   S.bounds = null;
   drawMap();
   await Promise.all([loadModels(), loadSessions()]);
   followSite();
 }
 
-$("floor").addEventListener("change", (e) => { S.floor = Number(e.target.value); drawMap(); });
+$("floor").addEventListener("change", (e) => { S.floor = Number(e.target.value); S.coverage = ""; fillCoverage(); drawMap(); });
+$("coverage").addEventListener("change", (e) => { S.coverage = e.target.value; drawMap(); });
+
+// The coverage selector: the positioned transmitters of the shown floor.
+function fillCoverage() {
+  const off = document.createElement("option");
+  off.value = "";
+  off.textContent = "off";
+  const txs = S.txs.filter((t) => t.x !== null && (t.floor === null || t.floor === S.floor));
+  $("coverage").replaceChildren(off, ...txs.map((t) => {
+    const o = document.createElement("option");
+    o.value = o.textContent = t.id;
+    return o;
+  }));
+  $("coverage").value = S.coverage;
+}
+
+function drawCoverage(svg, b) {
+  const t = S.txs.find((x) => x.id === S.coverage);
+  $("coverage-legend").hidden = !t;
+  if (!t) return;
+  const g = el("g", { id: "coverage-layer" }, svg);
+  const r0 = t.tx_power_dbm ?? DEFAULT_R0_DBM, gamma = t.path_loss_exponent ?? DEFAULT_GAMMA;
+  const cell = Math.max(0.25, b.size / 80);
+  for (let x = b.x0; x < b.x1; x += cell) {
+    for (let y = b.y0; y < b.y1; y += cell) {
+      const d = Math.max(1, Math.hypot(x + cell / 2 - t.x, y + cell / 2 - t.y));
+      const rss = r0 - 10 * gamma * Math.log10(d);
+      const f = Math.min(1, Math.max(0, (rss - HEAT_BOTTOM) / (HEAT_TOP - HEAT_BOTTOM)));
+      el("rect", { x: X(x), y: Y(y + cell), width: cell * 1.02, height: cell * 1.02, class: "heat", fill: `hsl(${240 - 185 * f}, 85%, ${50 + 5 * f}%)` }, g);
+    }
+  }
+}
 $("show-rps").addEventListener("change", (e) => $("map").classList.toggle("hide-rps", !e.target.checked));
 $("show-tx").addEventListener("change", (e) => $("map").classList.toggle("hide-tx", !e.target.checked));
 
@@ -260,6 +298,7 @@ function drawMap() {
     t.textContent = `${y} m`;
   }
   if (S.site) {
+    drawCoverage(svg, b);
     const floor = S.site.floors.find((f) => f.level === S.floor);
     const walls = el("g", { id: "walls" }, svg);
     for (const w of floor ? floor.walls : []) el("line", { x1: X(w[0]), y1: Y(w[1]), x2: X(w[2]), y2: Y(w[3]), class: "wall" }, walls);

@@ -82,6 +82,11 @@ def test_dashboard_map_and_live_session(page, live_server, site, device):
     assert radius["rp4"] > radius["rp0"]
     assert page.locator("line.wall").count() == 5
     assert page.locator(".tx.wifi").count() == 2 and page.locator(".tx.ble").count() == 1
+    # the modelled coverage of a transmitter: a layer of cells, and its legend
+    page.select_option("#coverage", "wifi:aa:bb:cc:dd:ee:01")
+    assert page.locator("rect.heat").count() > 100 and page.locator("#coverage-legend").is_visible()
+    page.select_option("#coverage", "")
+    assert page.locator("rect.heat").count() == 0
     assert "1 · " not in page.text_content("#floor") or page.locator("#floor option").count() == 2
 
     # a session posted by a client appears live, with its covariance ellipse, and moves
