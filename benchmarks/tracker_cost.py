@@ -64,12 +64,13 @@ def main() -> None:
     print(f"{'tracker':8s} {'predict µs':>12s} {'update µs':>12s} {'store+load µs':>14s}")
     for name, r in results.items():
         print(f"{name:8s} {r['predict_us']:12.1f} {r['update_us']:12.1f} {r['store_load_us']:14.1f}")
-    pf, sk = results["pf"], results["skpf"]
-    print(
-        f"PF-1000 / SKPF cost ratio: predict {pf['predict_us'] / sk['predict_us']:.1f}x, "
-        f"update {pf['update_us'] / sk['update_us']:.1f}x, "
-        f"step+update {(pf['predict_us'] + pf['update_us']) / (sk['predict_us'] + sk['update_us']):.1f}x"
-    )
+    for pf_name, sk_name in (("pf", "skpf"), ("pf-xy", "skpf-xy")):
+        pf, sk = results[pf_name], results[sk_name]
+        print(
+            f"{pf_name} (1,000 particles) / {sk_name} cost ratio: predict {pf['predict_us'] / sk['predict_us']:.1f}x, "
+            f"update {pf['update_us'] / sk['update_us']:.1f}x, "
+            f"step+update {(pf['predict_us'] + pf['update_us']) / (sk['predict_us'] + sk['update_us']):.1f}x"
+        )
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ import numpy as np
 from filterpy.kalman import JulierSigmaPoints
 
 from server.estimation.tracking import selfcal
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, fix_cov_entries, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov_entries, register
 from server.estimation.types import Fix, Step
 
 N_STATE = 2
@@ -69,6 +69,28 @@ def symmetric_sigma_points(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np
         ]
     )
     return sigmas, _WEIGHTS
+
+
+def _reweighted_mean(x0: float, x1: float, p00: float, p01: float, p11: float, z0: float, z1: float, r00: float,
+                     r01: float, r11: float) -> tuple[float, float, tuple[float, float, float, float]]:
+    """The SKPF's posterior mean Σ w̃_i χ_i over the 4 sigma points x ± √2·(columns of chol(P))
+    redrawn from the prior, w̃_i ∝ N(z; χ_i, R) normalised; returns it and the weights."""
+    # Sigma points redrawn from the prior: x ± √n·(columns of chol(P)).
+    l11, l21, l22 = _chol2(p00, p01, p11)
+    u0, u1, v1 = _SQRT_N * l11, _SQRT_N * l21, _SQRT_N * l22
+    # Likelihood N(z; χ_i, R) of each point, in the log domain: −½ (z − χ)ᵀ R⁻¹ (z − χ).
+    det_r = r00 * r11 - r01 * r01
+    i00, i01, i11 = r11 / det_r, -r01 / det_r, r00 / det_r
+    e0, e1 = z0 - x0, z1 - x1
+    lw = []
+    for d0, d1 in ((e0 - u0, e1 - u1), (e0, e1 - v1), (e0 + u0, e1 + u1), (e0, e1 + v1)):
+        lw.append(-0.5 * (i00 * d0 * d0 + 2.0 * i01 * d0 * d1 + i11 * d1 * d1))
+    m = max(lw)
+    a, b, c, e = (math.exp(v - m) for v in lw)
+    total = a + b + c + e
+    a, b, c, e = a / total, b / total, c / total, e / total
+    # Σ w̃_i χ_i with χ = x + (u, 0-col) etc.
+    return x0 + (a - c) * u0, x1 + (a - c) * u1 + (b - e) * v1, (a, b, c, e)
 
 
 @register
@@ -112,24 +134,7 @@ class SKPFXYTracker(Tracker):
         r00, r01, r11 = fix_cov_entries(fix.covariance)
         z0, z1 = float(fix.x), float(fix.y)
         x0, x1, p00, p01, p11 = self._x0, self._x1, self._p00, self._p01, self._p11
-        # Sigma points redrawn from the prior: x ± √n·(columns of chol(P)).
-        l11, l21, l22 = _chol2(p00, p01, p11)
-        u0, u1, v1 = _SQRT_N * l11, _SQRT_N * l21, _SQRT_N * l22
-        # Likelihood N(z; χ_i, R) of each point, in the log domain: −½ (z − χ)ᵀ R⁻¹ (z − χ).
-        det_r = r00 * r11 - r01 * r01
-        i00, i01, i11 = r11 / det_r, -r01 / det_r, r00 / det_r
-        e0, e1 = z0 - x0, z1 - x1
-        lw = []
-        for d0, d1 in ((e0 - u0, e1 - u1), (e0, e1 - v1), (e0 + u0, e1 + u1), (e0, e1 + v1)):
-            lw.append(-0.5 * (i00 * d0 * d0 + 2.0 * i01 * d0 * d1 + i11 * d1 * d1))
-        m = max(lw)
-        a, b, c, e = (math.exp(v - m) for v in lw)
-        total = a + b + c + e
-        a, b, c, e = a / total, b / total, c / total, e / total
-        self._last_weights = (a, b, c, e)
-        # Σ w̃_i χ_i with χ = x + (u, 0-col) etc.
-        self._x0 = x0 + (a - c) * u0
-        self._x1 = x1 + (a - c) * u1 + (b - e) * v1
+        self._x0, self._x1, self._last_weights = _reweighted_mean(x0, x1, p00, p01, p11, z0, z1, r00, r01, r11)
         # S = P⁻ + R, Pxz = P⁻, K = P⁻ S⁻¹, P⁺ = P⁻ − K S Kᵀ = P⁻ − P⁻ S⁻¹ P⁻.
         s00, s01, s11 = p00 + r00, p01 + r01, p11 + r11
         det_s = s00 * s11 - s01 * s01
@@ -170,6 +175,18 @@ class SKPFXYTracker(Tracker):
 
     def _load_state(self, state: dict) -> None:
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
+
+
+def _chol4(P: list[list[float]]) -> list[list[float]]:
+    """Lower Cholesky factor of a 4×4 symmetric matrix (lists); a round-off floor keeps
+    a near-singular P defined."""
+    L = [[0.0] * 4 for _ in range(4)]
+    for j in range(4):
+        s = P[j][j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = math.sqrt(max(s, 1e-18))
+        for i in range(j + 1, 4):
+            L[i][j] = (P[i][j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    return L
 
 
 _POINTS4 = JulierSigmaPoints(selfcal.N_AUG, kappa=0.0)
@@ -219,44 +236,78 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         self.params = {"q": float(q), **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std,
                                                                    scale_walk)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
+        self._q_diag = [float(v) for v in np.diag(self._Q)]
         self.x, self.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
-        self._last_weights: np.ndarray | None = None
+        self._last_weights: tuple[float, ...] | None = None
 
     @property
     def last_weights(self) -> np.ndarray | None:
-        return None if self._last_weights is None else self._last_weights.copy()
+        """Normalised likelihood weights of the position sigma points at the last update."""
+        return None if self._last_weights is None else np.array(self._last_weights)
 
     def predict(self, step: Step) -> None:
+        # Written out on Python floats (4×4 Cholesky, 8 points): a NumPy call per
+        # operation would cost more than the arithmetic; pinned to filterpy's
+        # JulierSigmaPoints + unscented_transform by the tests.
         h = math.radians(step.heading_deg)
-        chi = selfcal.move_many(symmetric_sigma_points4(self.x, self.P), step.length_m, h)
-        x = chi.mean(axis=0)
-        diff = chi - x
-        _, G = selfcal.jacobians(x, step.length_m, h)
+        d = step.length_m
+        xs = self.x.tolist()
+        P = self.P.tolist()
+        L = _chol4(P)
+        pts = []
+        for j in range(4):
+            col = [2.0 * L[i][j] for i in range(4)]  # √n = 2
+            for sign in (1.0, -1.0):
+                b = xs[2] + sign * col[2]
+                sd = (xs[3] + sign * col[3]) * d
+                pts.append((xs[0] + sign * col[0] + sd * math.sin(h + b), xs[1] + sign * col[1] + sd * math.cos(h + b),
+                            b, xs[3] + sign * col[3]))
+        m = [sum(p[i] for p in pts) * _W4 for i in range(4)]
+        dev = [[p[i] - m[i] for i in range(4)] for p in pts]
+        C = [[0.0] * 4 for _ in range(4)]
+        for i in range(4):
+            for k in range(i, 4):
+                C[i][k] = C[k][i] = _W4 * sum(v[i] * v[k] for v in dev)
+        # + diag(q, q, σb², σs²) and G diag(σd², σh²) Gᵀ at the mean (its position block only).
+        q = self._q_diag
         vd, vh = selfcal.step_input_var(step)
-        self.x = x
-        self.P = selfcal.symmetric(_W4 * diff.T @ diff + (G * [vd, vh]) @ G.T + self._Q)
+        sc2 = m[3] * m[3]
+        a = h + m[2]
+        sa, ca = math.sin(a), math.cos(a)
+        vdh = d * d * vh
+        C[0][0] += sc2 * (sa * sa * vd + ca * ca * vdh) + q[0]
+        C[1][1] += sc2 * (ca * ca * vd + sa * sa * vdh) + q[1]
+        C[0][1] += sc2 * sa * ca * (vd - vdh)
+        C[1][0] = C[0][1]
+        C[2][2] += q[2]
+        C[3][3] += q[3]
+        self.x = np.array(m)
+        self.P = np.array(C)
 
     def update(self, fix: Fix) -> None:
-        R = fix_cov(fix.covariance)
-        z = np.asarray(fix.mean, float)
+        r00, r01, r11 = fix_cov_entries(fix.covariance)
         x, P = self.x, self.P
-        Ppp = P[:2, :2]
+        x0, x1 = float(x[0]), float(x[1])
+        p00, p01, p11 = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
         # Position: the seed form's rule on the position marginal (its 4 sigma points).
-        chi, _ = symmetric_sigma_points(x[:2], Ppp)
-        e = z - chi
-        lw = -0.5 * np.einsum("ij,jk,ik->i", e, np.linalg.inv(R), e)
-        w = np.exp(lw - lw.max())
-        w /= w.sum()
-        self._last_weights = w
-        pos = w @ chi
+        pos0, pos1, self._last_weights = _reweighted_mean(x0, x1, p00, p01, p11, float(fix.x), float(fix.y),
+                                                          r00, r01, r11)
         # Calibration: its Gaussian regression on the position's correction,
-        # b, s += P_cp P_pp⁻¹ (x⁺ − x⁻) (what a Kalman gain does for H = [I 0]).
-        cal = x[2:] + P[2:, :2] @ np.linalg.solve(Ppp, pos - x[:2])
-        # Covariance: S = P_pp + R and Pxz = P[:, :2] (the UT of h(χ) = χ[:2], exact).
-        S = Ppp + R
-        K = P[:, :2] @ np.linalg.inv(S)
-        self.x = selfcal.clamp(np.concatenate([pos, cal]))
-        self.P = selfcal.symmetric(P - K @ S @ K.T)
+        # c += P_cp P_pp⁻¹ (x⁺ − x⁻) (what a Kalman gain does for H = [I 0]).
+        det = p00 * p11 - p01 * p01
+        d0, d1 = pos0 - x0, pos1 - x1
+        a0, a1 = (p11 * d0 - p01 * d1) / det, (p00 * d1 - p01 * d0) / det
+        b = float(x[2]) + float(P[2, 0]) * a0 + float(P[2, 1]) * a1
+        sc = float(x[3]) + float(P[3, 0]) * a0 + float(P[3, 1]) * a1
+        # Covariance: S = P_pp + R and Pxz = P[:, :2] (the UT of h(χ) = χ[:2], exact), so
+        # P⁺ = P − K S Kᵀ = P − P[:, :2] S⁻¹ P[:2, :].
+        s00, s01, s11 = p00 + r00, p01 + r01, p11 + r11
+        det_s = s00 * s11 - s01 * s01
+        Pc = P[:, :2]
+        K = Pc @ np.array([[s11 / det_s, -s01 / det_s], [-s01 / det_s, s00 / det_s]])
+        Pn = P - K @ Pc.T
+        self.x = selfcal.clamp(np.array([pos0, pos1, b, sc]))
+        self.P = 0.5 * (Pn + Pn.T)
 
     @property
     def state_mean(self) -> np.ndarray:
