@@ -1,11 +1,14 @@
 """Train fingerprint algorithms on a data set and print held-out metrics.
 
-    python -m localizer_tools.evaluate TRAIN [TEST] [--format csv|ujiindoorloc|ujible]
-        [--split user|phone|random] [--algorithms nbc,knn,...] [--kinds wifi,ble]
-        [--use-heading] [--missing powed|floor] [--params JSON]
+    python -m localizer_tools.evaluate TRAIN [TEST] [--format auto|csv|ujiindoorloc|ujible|json|msft]
+        [--split user|phone|power|random] [--algorithms wknn,knn,...] [--kinds wifi,ble]
+        [--use-heading] [--missing powed|floor|exponential] [--params JSON]
 
 Without TEST, TRAIN is split: whole users or phones held out (about --test-fraction
-of the rows), or a random share of rows.
+of the rows), a UJI BLE beacon power (``power``), or a random share of rows. Any data
+set the upload accepts (survey CSV, UJIIndoorLoc CSV, JSON rows) and the shared UJI
+BLE and MSFT directories are read (``--format auto`` tells them apart); a data set
+that cannot be read or split prints one ``error:`` line and exits 2.
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ import argparse
 import json
 import sys
 
-from server.estimation.fingerprint.loaders import load, read_uji_ble_beacons
+from server.estimation.fingerprint.features import MISSING_MODES
+from server.estimation.fingerprint.loaders import FORMATS, detect_format, load, read_uji_ble_beacons
 from server.estimation.fingerprint.metrics import evaluate, holdout_split
 from server.estimation.fingerprint.registry import ALGORITHMS, make_model
 
@@ -40,28 +44,39 @@ def format_table(rows: list[dict], markdown: bool = False) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m localizer_tools.evaluate", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m localizer_tools.evaluate", description=(__doc__ or "").splitlines()[0])
     ap.add_argument("train")
     ap.add_argument("test", nargs="?")
-    ap.add_argument("--format", default="csv", choices=["csv", "ujiindoorloc", "ujible"])
-    ap.add_argument("--split", default="user", choices=["user", "phone", "random"])
+    ap.add_argument("--format", default="auto", choices=list(FORMATS))
+    ap.add_argument("--split", default="user", choices=["user", "phone", "power", "random"])
     ap.add_argument("--test-fraction", type=float, default=0.2)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--algorithms", default="nbc,knn,svm,kde,tkbe,propagation")
+    ap.add_argument("--algorithms", default="wknn,nbc,knn,svm,kde,tkbe,propagation")
     ap.add_argument("--kinds", default=None, help="comma-separated: wifi,ble (default all)")
     ap.add_argument("--use-heading", action="store_true")
-    ap.add_argument("--missing", default=None, choices=["powed", "floor"])
+    ap.add_argument("--missing", default=None, choices=list(MISSING_MODES))
     ap.add_argument("--params", default="{}", help='JSON {"knn": {"k": 5}, ...} or {"k": 5} for all')
     ap.add_argument("--with-beacons", action="store_true",
                     help="ujible: give the propagation model the beacon positions from dep/lib.csv")
     ap.add_argument("--markdown", action="store_true")
     a = ap.parse_args(argv)
+    try:
+        return _run(a)
+    except (ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
 
+
+def _run(a) -> int:
     fs = load(a.train, a.format)
+    if not len(fs):
+        raise ValueError(f"{a.train}: no fingerprint hears any transmitter")
     if a.test:
         train, test, desc = fs, load(a.test, a.format), f"test file {a.test}"
     else:
         train, test, desc = holdout_split(fs, a.split, a.test_fraction, a.seed)
+    if not len(test):
+        raise ValueError(f"the {a.split} split held out no rows: nothing to evaluate on")
     cover = set(train.rp_keys())
     coverage = sum(k in cover for k in test.rp_keys()) / max(len(test), 1)
     print(f"# {a.train} ({a.format}): {len(fs)} rows, skipped {fs.meta.get('skipped', 0)}; "
@@ -77,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         p = dict(params.get(name, {})) if any(k in ALGORITHMS for k in params) else dict(params)
         if a.missing:
             p["missing"] = a.missing
-        if name == "propagation" and a.with_beacons and a.format == "ujible":
+        if name == "propagation" and a.with_beacons and detect_format(a.train) == "ujible":
             p["transmitters"] = read_uji_ble_beacons(a.train)
         model = make_model(name, p, use_heading=a.use_heading, kinds=kinds).fit(train)
         m = evaluate(model, test).as_dict()

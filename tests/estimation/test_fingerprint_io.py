@@ -131,3 +131,51 @@ def test_evaluate_on_an_empty_test_set_gives_nan_figures(site_and_survey):
     _, fs = site_and_survey
     metrics = evaluate(make_model("knn").fit(fs), fs.subset(np.zeros(len(fs), dtype=bool)))
     assert metrics.n_test == 0 and np.isnan(metrics.p90_error_m) and np.isnan(metrics.mapping_rate)
+
+
+def test_loader_errors_are_clear_value_errors(tmp_path):
+    from server.estimation.fingerprint.loaders import load
+
+    with pytest.raises(ValueError, match="no such file"):
+        load(tmp_path / "missing.csv", "csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(ValueError, match="lacks columns"):
+        load(tmp_path / "empty.csv", "auto")
+    (tmp_path / "bad.csv").write_text("x,y,floor,wifi:a\n1,2,0,-60\n1,2,0,loud\n")
+    with pytest.raises(ValueError, match="data row 1, column wifi:a"):
+        load(tmp_path / "bad.csv", "csv")
+    with pytest.raises(ValueError, match="expects a directory"):
+        load(tmp_path / "bad.csv", "ujible")
+    (tmp_path / "rows.json").write_text('{"fingerprints": [{"x": 1}]}')
+    with pytest.raises(ValueError, match="fingerprint 0 needs"):
+        load(tmp_path / "rows.json", "auto")
+
+
+def test_uji_ble_beacon_letters_and_power_groups(tmp_path):
+    from server.estimation.fingerprint.loaders import load
+
+    (tmp_path / "rss").mkdir()
+    (tmp_path / "dep").mkdir()
+    (tmp_path / "rss" / "lib_rss.csv").write_text("-60,100\n-65,-80\n-70,-80\n-71,-82\n")
+    (tmp_path / "rss" / "lib_crd.csv").write_text("1.0,2.0\n1.0,2.0\n3.0,4.0\n3.0,4.0\n")
+    (tmp_path / "rss" / "lib_ids.csv").write_text("12200101\n13200102\n22300201\n23300202\n")
+    (tmp_path / "dep" / "lib.csv").write_text("id,x,y\nB1,0.5,0.5\nB22,5.0,5.0\n")
+    fs = load(tmp_path, "auto")
+    assert fs.tx_ids == ["ble:libb1", "ble:libb22"]
+    assert list(fs.meta["power"]) == [2, 3, 2, 3]
+    assert list(fs.subset(np.array([1, 3])).meta["power"]) == [3, 3]
+    rc = evaluate_cli.main([str(tmp_path), "--split", "power", "--test-fraction", "0.5", "--algorithms", "wknn"])
+    assert rc == 0
+
+
+def test_evaluate_cli_says_error_and_exits_2(tmp_path, capsys, site_and_survey):
+    _, fs = site_and_survey
+    assert evaluate_cli.main([str(tmp_path / "nothing.csv")]) == 2
+    assert "error:" in capsys.readouterr().err
+    path = tmp_path / "s.csv"
+    write_survey_csv(fs, path)
+    assert evaluate_cli.main([str(path), "--split", "power"]) == 2  # no power column
+    assert "no 'power' column" in capsys.readouterr().err
+    (tmp_path / "one.csv").write_text("x,y,floor,device,wifi:a\n1,2,0,p,-60\n3,4,0,p,-70\n")
+    assert evaluate_cli.main([str(tmp_path / "one.csv"), "--split", "phone"]) == 2  # one device only
+    assert "same device" in capsys.readouterr().err

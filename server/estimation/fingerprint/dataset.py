@@ -200,11 +200,13 @@ class FingerprintSet:
         if idx.dtype == bool:
             idx = np.flatnonzero(idx)
         pick = lambda a: None if a is None else a[idx]  # noqa: E731
+        n = len(self)
+        meta = {k: v[idx] if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v for k, v in self.meta.items()}
         return replace(
             self, rss=self.rss[idx], x=self.x[idx], y=self.y[idx], floor=self.floor[idx],
             heading_deg=self.heading_deg[idx], label=self.label[idx],
             building=self.building[idx], user=pick(self.user), device=pick(self.device),
-            t=pick(self.t), meta=dict(self.meta),
+            t=pick(self.t), meta=meta,
         )
 
     def select_transmitters(self, tx_ids: Sequence[str]) -> FingerprintSet:
@@ -284,12 +286,16 @@ def random_split(fs: FingerprintSet, test_fraction: float = 0.2, seed: int = 0):
 
 
 def group_split(fs: FingerprintSet, by: str, test_fraction: float = 0.2, seed: int = 0):
-    """Hold out whole groups (``by`` = "user" or "device") until about
-    ``test_fraction`` of the rows are held out. Returns (train, test, held_out_groups)."""
-    groups = getattr(fs, by)
+    """Hold out whole groups (``by`` = "user", "device", or a per-row array in ``meta``
+    such as the UJI BLE beacon "power") until about ``test_fraction`` of the rows are
+    held out. Returns (train, test, held_out_groups). ValueError when the set has no
+    such column or a single group (nothing to hold out)."""
+    groups = getattr(fs, by, None) if by in ("user", "device") else fs.meta.get(by)
     if groups is None:
         raise ValueError(f"this set has no {by!r} column to split by")
-    names, inv, counts = np.unique(groups.astype(str), return_inverse=True, return_counts=True)
+    names, inv, counts = np.unique(np.asarray(groups).astype(str), return_inverse=True, return_counts=True)
+    if len(names) < 2:
+        raise ValueError(f"cannot hold out by {by}: every row has the same {by} ({names[0] if len(names) else 'none'})")
     order = np.random.default_rng(seed).permutation(len(names))
     held, n_held = [], 0
     target = test_fraction * len(fs)

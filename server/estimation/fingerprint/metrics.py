@@ -88,7 +88,8 @@ def evaluate(model, test: FingerprintSet, n_single: int = 200, seed: int = 0) ->
 
 
 def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2, seed: int = 0):
-    """(train, test, description). how: "user", "phone"/"device", "random", or "auto"
+    """(train, test, description). how: "user", "phone"/"device", "random", a per-row
+    group array of ``fs.meta`` (e.g. "power" of the UJI BLE set), or "auto"
     (device groups when there are at least 3 devices, else random)."""
     if how == "auto":
         how = "device" if fs.device is not None and len(set(fs.device.astype(str))) >= 3 else "random"
@@ -98,6 +99,9 @@ def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 
     if how == "user":
         tr, te, held = group_split(fs, "user", test_fraction, seed)
         return tr, te, f"held-out users {held}"
+    if how == "power" or (how in fs.meta and how != "skipped"):
+        tr, te, held = group_split(fs, how, test_fraction, seed)
+        return tr, te, f"held-out {how} {held}"
     if how == "random":
         tr, te = random_split(fs, test_fraction, seed)
         return tr, te, f"random {test_fraction:.0%} of rows (seed {seed})"
