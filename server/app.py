@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import logging
 from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError, OperationalError
 
 from server.api import dashboard, events, health, locate, models, sessions, sites, surveys
 from server.api.errors import InternalErrors
-from server.api.limits import BodySizeLimit
+from server.api.limits import BATCH_ROUTE, LOCATE_ROUTE, BodySizeLimit
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
@@ -34,6 +36,8 @@ from server.services.sessions import SessionService
 from server.services.sites import SiteService
 from server.services.surveys import SurveyService
 from server.services.training import TrainingWorker
+
+log = logging.getLogger("server")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -75,10 +79,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.surveys = SurveyService(db, settings.max_survey_rows)
     app.state.models = ModelService(db, on_queued=None if trainer is None else trainer.wake)
     app.state.health = HealthService(db)
-    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        BodySizeLimit, max_bytes=settings.max_body_bytes, read_timeout_s=settings.body_read_timeout_s,
+        routes=[(BATCH_ROUTE, int(settings.max_batch_body_kb * 1024)), (LOCATE_ROUTE, int(settings.max_locate_body_kb * 1024))],
+    )
     app.add_middleware(InternalErrors)  # outermost of ours: sees what the size limit lets through
     app.add_exception_handler(ServiceError, _service_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(OperationalError, _database_unavailable)
+    app.add_exception_handler(DataError, _unstorable)
+    app.add_exception_handler(OverflowError, _unstorable)
     for module in (health, sites, surveys, models, locate, sessions, events):
         app.include_router(module.router)
     dashboard.install(app)  # the dashboard at / and the docs, with their assets (no CDN)
@@ -132,7 +142,9 @@ def validation_errors(detail: Any) -> list[dict[str, Any]]:
 
 async def _service_error(_: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, ServiceError)  # registered for ServiceError only
-    return JSONResponse({"detail": detail_of(exc)}, status_code=status_of(exc))
+    status = status_of(exc)
+    headers = {"Retry-After": str(RETRY_AFTER_S)} if status == 503 else None
+    return JSONResponse({"detail": detail_of(exc)}, status_code=status, headers=headers)
 
 
 async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
@@ -143,6 +155,26 @@ async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
         loc = [p for p in err.get("loc", ()) if p != "[key]"]
         errors.append({"loc": loc, "field": ".".join(map(str, loc[1:])), "msg": err.get("msg"), "type": err.get("type")})
     return JSONResponse({"detail": errors}, status_code=422)
+
+
+#: seconds a client is asked to wait when the database cannot write (full, locked, gone)
+RETRY_AFTER_S = 5
+
+
+async def _database_unavailable(_: Request, exc: Exception) -> JSONResponse:
+    """The database cannot do the work now (disk full, locked too long, connection gone): 503 and
+    when to try again, never a 500. Nothing was stored (the transaction rolled back)."""
+    log.warning("database unavailable: %s", exc)
+    return JSONResponse({"detail": f"the database is unavailable ({type(getattr(exc, 'orig', exc)).__name__}); "
+                                   "nothing was stored, try again later"},
+                        status_code=503, headers={"Retry-After": str(RETRY_AFTER_S)})
+
+
+async def _unstorable(_: Request, exc: Exception) -> JSONResponse:
+    """A value the database cannot hold (a number beyond its integer range, a NUL character)."""
+    return JSONResponse({"detail": validation_errors(
+        "a value of the request cannot be stored (a number beyond the database's range, or a NUL character)")},
+        status_code=422)
 
 
 def _document_own_bodies(app: FastAPI) -> None:

@@ -31,6 +31,12 @@ class Settings(BaseSettings):
         default_factory=list, description="Comma-separated bootstrap device API keys."
     )
     max_body_mb: float = Field(64.0, gt=0, description="Largest request body accepted (MiB).")
+    max_batch_body_kb: float = Field(4096.0, gt=0, description="Largest batch body accepted (KiB): fits 1,000 steps "
+                                     "and 1,000 scans.")
+    max_locate_body_kb: float = Field(256.0, gt=0, description="Largest locate body accepted (KiB).")
+    body_read_timeout_s: float = Field(30.0, gt=0, description="A request body that stops arriving for this long is 408.")
+    auth_failures_per_minute: int = Field(
+        60, gt=0, description="Failed authentications one client address may make per minute before 429.")
     max_survey_rows: int = Field(100_000, gt=0, description="Most fingerprints in one survey upload.")
     embedded_worker: bool = Field(True, description="Train models in this server process's own worker.")
     training_poll_s: float = Field(2.0, gt=0, description="How often a worker looks for queued models.")

@@ -33,8 +33,13 @@ TxId = Annotated[str, StringConstraints(pattern=TX_ID_PATTERN), Field(
 Dbm = Annotated[float, Field(ge=RSS_MIN_DBM, le=RSS_MAX_DBM, allow_inf_nan=False,
                              description="Received signal strength in dBm, [-130, 0].")]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=-1e7, le=1e7)]
-Seconds = Annotated[float, Field(allow_inf_nan=False,
-                                 description="Time in seconds (float, any epoch, monotonic within one session).")]
+Seconds = Annotated[float, Field(allow_inf_nan=False, ge=-1e12, le=1e12,
+                                 description="Time in seconds (float, any epoch, monotonic within one session), "
+                                 "|t| ≤ 1e12.")]
+#: a stored row's id: the range every backend's integer column holds (PostgreSQL's is 32-bit)
+DbId = Annotated[int, Field(ge=-(2**31), le=2**31 - 1)]
+#: text the database can store: no NUL character (PostgreSQL refuses it)
+NO_NUL = r"^[^\x00]*$"
 Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360, le=360, description=(
     "Heading in degrees clockwise from the site's +y axis (0 = +y/north, 90 = +x/east): "
     "a step of length d moves by (d·sin h, d·cos h)."))]
@@ -49,7 +54,7 @@ FILTERS: list[str] = list(tracker_names())
 ALGORITHM_NAMES: list[str] = sorted(ALGORITHMS)
 _FILTER_ENUM: dict[str, Any] = {"enum": FILTERS}
 _ALGORITHM_ENUM: dict[str, Any] = {"enum": ALGORITHM_NAMES}
-Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
+Name = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200, pattern=NO_NUL)]
 
 
 def _non_empty(rss: dict[str, float]) -> dict[str, float]:
@@ -188,8 +193,8 @@ class FingerprintIn(Strict):
     rss: Rss = Field(description="Transmitter id → dBm; a transmitter not heard is absent (never a sentinel).")
     heading_deg: Degrees | None = None
     t: Seconds | None = None
-    device: Annotated[str, StringConstraints(max_length=200)] | None = None
-    label: Annotated[str, StringConstraints(min_length=1, max_length=200)] | None = None
+    device: Annotated[str, StringConstraints(max_length=200, pattern=NO_NUL)] | None = None
+    label: Annotated[str, StringConstraints(min_length=1, max_length=200, pattern=NO_NUL)] | None = None
 
 
 class SurveyIn(Strict):
@@ -231,10 +236,10 @@ class InitialIn(Strict):
 
 
 class SessionIn(Strict):
-    site_id: int
+    site_id: DbId
     filter: str = Field(description="The tracker to run (see docs/api-conventions.md).",
                         json_schema_extra=_FILTER_ENUM)
-    model_id: int | None = None
+    model_id: DbId | None = None
     initial: InitialIn | None = None
 
     @field_validator("filter")
@@ -363,7 +368,7 @@ class ModelOut(BaseModel):
 class LocateIn(Strict):
     rss: Annotated[Rss, Field(max_length=2048)]
     heading_deg: Degrees | None = None
-    model_id: int | None = None
+    model_id: DbId | None = None
 
 
 class CandidateOut(BaseModel):

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.concurrency import run_in_threadpool
 
@@ -36,8 +36,16 @@ async def _principal(
             headers={"WWW-Authenticate": "Bearer"},
         )
     auth = request.app.state.auth
-    principal = auth.bootstrap(credentials.credentials) or await run_in_threadpool(auth.stored, credentials.credentials)
+    address = request.client.host if request.client is not None else ""
+    principal = auth.bootstrap(credentials.credentials)
     if principal is None:
+        wait = auth.failures.retry_after(address)
+        if wait is not None:  # too many wrong keys from this address: no look-up
+            raise HTTPException(status.HTTP_429_TOO_MANY_REQUESTS, f"too many failed authentications from "
+                                f"{address}: try again in {wait} s", headers={"Retry-After": str(wait)})
+        principal = await run_in_threadpool(auth.stored, credentials.credentials)
+    if principal is None:
+        auth.failures.failed(address)
         raise HTTPException(
             status.HTTP_401_UNAUTHORIZED, "unknown or revoked API key", headers={"WWW-Authenticate": "Bearer"}
         )
@@ -52,6 +60,9 @@ def require(scope: Scope):
 
     return check
 
+
+#: a stored row's id in a path: the range every backend's integer column holds (else 422, never a 500)
+PathId = Annotated[int, Path(ge=-(2**31), le=2**31 - 1)]
 
 Admin = Annotated[Principal, Depends(require("admin"))]
 Device = Annotated[Principal, Depends(require("device"))]

@@ -19,6 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
 
+from server.errors import UnsupportedMedia
 from server.inline import WouldBlock, on_event_loop
 
 M = TypeVar("M", bound=BaseModel)
@@ -31,9 +32,20 @@ def json_body_doc(model: type[BaseModel]) -> dict[str, Any]:
     return {"requestBody": {"required": True, "content": {"application/json": {"schema": ref}}}}
 
 
+#: bodies larger than this are parsed in the thread pool, not on the event loop
+PARSE_INLINE_MAX_BYTES = 64 * 1024
+
+
 async def read_json(request: Request, model: type[M]) -> M:
+    """The body as ``model``: 415 unless it is declared JSON (or not declared), 422 as FastAPI words it."""
+    media = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
+    if media != "application/json" and not media.endswith("+json"):
+        raise UnsupportedMedia(f"unsupported media type {media!r}: send application/json")
+    body = await request.body()
     try:
-        return model.model_validate_json(await request.body())
+        if len(body) > PARSE_INLINE_MAX_BYTES:
+            return await run_in_threadpool(model.model_validate_json, body)
+        return model.model_validate_json(body)
     except ValidationError as exc:
         raise RequestValidationError(
             [{**e, "loc": ("body", *e["loc"])} for e in exc.errors(include_url=False, include_input=False)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from fastapi.responses import JSONResponse
 
-from server.api.deps import Device, Positioning
+from server.api.deps import Device, PathId, Positioning
 from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.schemas import CandidateOut, LocateIn, LocateOut
 
@@ -19,7 +19,7 @@ router = APIRouter(prefix="/api/v1/sites", tags=["locate"])
     responses={409: {"description": "The site has no ready model."},
                422: {"description": "No transmitter of the scan is known to the model."}},
 )
-async def locate(site_id: int, request: Request, positioning: Positioning, _: Device) -> Response:
+async def locate(site_id: PathId, request: Request, positioning: Positioning, _: Device) -> Response:
     body = await read_json(request, LocateIn)
     located = await run_blocking(request, positioning.locate, site_id, body.rss, body.heading_deg, body.model_id)
     fix = located.fix

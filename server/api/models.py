@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, status
 
-from server.api.deps import Admin, Models
+from server.api.deps import Admin, Models, PathId
 from server.domain import ModelInfo, ModelSpec
 from server.schemas import ModelIn, ModelOut
 
@@ -18,7 +18,7 @@ def model_out(model: ModelInfo) -> ModelOut:
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=ModelOut)
-def train(site_id: int, body: ModelIn, models: Models, _: Admin) -> ModelOut:
+def train(site_id: PathId, body: ModelIn, models: Models, _: Admin) -> ModelOut:
     """Queue a training job; poll the model until it is `ready` or `failed`."""
     spec = ModelSpec(
         algorithm=body.algorithm, params=body.params, use_heading=body.use_heading, kinds=tuple(body.kinds or ()),
@@ -28,15 +28,15 @@ def train(site_id: int, body: ModelIn, models: Models, _: Admin) -> ModelOut:
 
 
 @router.get("", response_model=list[ModelOut])
-def list_models(site_id: int, models: Models, _: Admin) -> list[ModelOut]:
+def list_models(site_id: PathId, models: Models, _: Admin) -> list[ModelOut]:
     return [model_out(m) for m in models.list_models(site_id)]
 
 
 @router.get("/{model_id}", response_model=ModelOut)
-def get_model(site_id: int, model_id: int, models: Models, _: Admin) -> ModelOut:
+def get_model(site_id: PathId, model_id: PathId, models: Models, _: Admin) -> ModelOut:
     return model_out(models.get(site_id, model_id))
 
 
 @router.post("/{model_id}/activate", response_model=ModelOut, responses={409: {"description": "Model not ready."}})
-def activate(site_id: int, model_id: int, models: Models, _: Admin) -> ModelOut:
+def activate(site_id: PathId, model_id: PathId, models: Models, _: Admin) -> ModelOut:
     return model_out(models.activate(site_id, model_id))

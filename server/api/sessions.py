@@ -56,7 +56,7 @@ async def post_batch(session_id: str, request: Request, sessions: Sessions, prin
 def list_sessions(
     sessions: Sessions,
     principal: Device,
-    site_id: Annotated[int | None, Query(description="Only this site's sessions.")] = None,
+    site_id: Annotated[int | None, Query(ge=-(2**31), le=2**31 - 1, description="Only this site's sessions.")] = None,
     status: Annotated[Literal["open", "closed"] | None, Query(description="Only open or only closed sessions.")] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="At most this many, newest first.")] = 100,
 ) -> list[SessionOut]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from server.api.deps import Admin, Sites
+from server.api.deps import Admin, PathId, Sites
 from server.domain import Floor, NewSite, SiteSummary, Transmitter
 from server.schemas import (
     FingerprintCounts,
@@ -69,35 +69,35 @@ def list_sites(sites: Sites, _: Admin) -> list[SiteOut]:
 
 
 @router.get("/{site_id}", response_model=SiteOut)
-def get_site(site_id: int, sites: Sites, _: Admin) -> SiteOut:
+def get_site(site_id: PathId, sites: Sites, _: Admin) -> SiteOut:
     return _site_out(sites.get(site_id))
 
 
 @router.patch("/{site_id}", response_model=SiteOut)
-def patch_site(site_id: int, body: SitePatch, sites: Sites, _: Admin) -> SiteOut:
+def patch_site(site_id: PathId, body: SitePatch, sites: Sites, _: Admin) -> SiteOut:
     """Change site settings (given keys are merged into the stored ones)."""
     return _site_out(sites.update_settings(site_id, body.settings.model_dump(exclude_unset=True)))
 
 
 @router.delete("/{site_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete_site(site_id: int, sites: Sites, _: Admin) -> Response:
+def delete_site(site_id: PathId, sites: Sites, _: Admin) -> Response:
     sites.delete(site_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.put("/{site_id}/transmitters", response_model=list[TransmitterOut])
-def put_transmitters(site_id: int, body: TransmitterList, sites: Sites, _: Admin) -> list[TransmitterOut]:
+def put_transmitters(site_id: PathId, body: TransmitterList, sites: Sites, _: Admin) -> list[TransmitterOut]:
     """Upsert by id; answers every transmitter of the site."""
     return [_transmitter_out(t) for t in sites.put_transmitters(site_id, [_transmitter(t) for t in body])]
 
 
 @router.get("/{site_id}/transmitters", response_model=list[TransmitterOut])
-def get_transmitters(site_id: int, sites: Sites, _: Admin) -> list[TransmitterOut]:
+def get_transmitters(site_id: PathId, sites: Sites, _: Admin) -> list[TransmitterOut]:
     return [_transmitter_out(t) for t in sites.transmitters(site_id)]
 
 
 @router.get("/{site_id}/reference-points", response_model=list[ReferencePointOut])
-def get_reference_points(site_id: int, sites: Sites, _: Admin) -> list[ReferencePointOut]:
+def get_reference_points(site_id: PathId, sites: Sites, _: Admin) -> list[ReferencePointOut]:
     return [
         ReferencePointOut(label=rp.label, floor=rp.floor, x=rp.x, y=rp.y, fingerprints=rp.fingerprints)
         for rp in sites.reference_points(site_id)

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Header, Query, Request, Response, status
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import Admin, Surveys
+from server.api.deps import Admin, PathId, Surveys
 from server.api.fastpath import json_body_doc
 from server.schemas import SurveyIn, SurveyResult
 
@@ -35,7 +35,7 @@ _BODY_DOC["requestBody"]["content"]["text/csv"] = {
     },
 )
 async def upload_survey(
-    site_id: int,
+    site_id: PathId,
     request: Request,
     response: Response,
     surveys: Surveys,

@@ -116,3 +116,92 @@ def test_a_ujiindoorloc_file_cut_inside_its_last_cell_is_refused(admin, site):
                         headers={"Content-Type": "text/csv"})
     assert answer.status_code == 422 and "truncated" in answer.text
     assert stored(admin, site) == 0
+
+
+# --- bad input that used to be a 500, and limits ------------------------------------------------
+
+BIG = 2**63
+
+
+@pytest.mark.parametrize("path", [f"/api/v1/sites/{BIG}", f"/api/v1/sites/{2**31}/models",
+                                  f"/api/v1/sites/1/models/{BIG}", f"/api/v1/sites/{-BIG - 1}/reference-points"])
+def test_ids_beyond_the_databases_integer_range_in_a_path_are_422(admin, path):
+    answer = admin.get(path)
+    assert answer.status_code == 422 and answer.json()["detail"][0]["loc"][0] == "path"
+
+
+def test_ids_beyond_the_databases_integer_range_in_a_body_or_query_are_422(admin, device, site):
+    assert device.post("/api/v1/sessions", json={"site_id": BIG, "filter": "ekf"}).status_code == 422
+    assert device.post("/api/v1/sessions", json={"site_id": site["id"], "filter": "ekf", "model_id": 2**31}).status_code == 422
+    assert device.get("/api/v1/sessions", params={"site_id": 2**31}).status_code == 422
+    assert device.post(f"/api/v1/sites/{site['id']}/locate", json={"rss": {AP: -50}, "model_id": BIG}).status_code == 422
+    assert admin.post(url(site), json=survey("A"), params={"first_row": BIG}).status_code == 422
+
+
+@pytest.mark.parametrize("make", [
+    lambda site: ("POST", "/api/v1/sites", {"name": "nul\u0000name"}),
+    lambda site: ("POST", url(site), {"fingerprints": [{"x": 0, "y": 0, "floor": 0, "rss": {AP: -50}, "label": "a\u0000"}]}),
+    lambda site: ("POST", url(site), {"fingerprints": [{"x": 0, "y": 0, "floor": 0, "rss": {AP: -50}, "device": "\u0000"}]}),
+])
+def test_nul_characters_are_422_and_store_nothing(admin, site, snapshot, make):
+    before = snapshot()
+    method, path, body = make(site)
+    answer = admin.request(method, path, json=body)
+    assert answer.status_code == 422, answer.text
+    assert all({"loc", "msg", "type"} <= set(e) for e in answer.json()["detail"])
+    assert snapshot() == before
+
+
+def test_a_session_id_with_a_nul_character_is_not_a_500(device):
+    assert device.get("/api/v1/sessions/abc%00def").status_code in (404, 422)
+
+
+def open_session(device, site) -> str:
+    answer = device.post("/api/v1/sessions", json={"site_id": site["id"], "filter": "ekf",
+                                                   "initial": {"x": 0, "y": 0, "floor": 0}})
+    assert answer.status_code == 201, answer.text
+    return answer.json()["id"]
+
+
+def test_times_beyond_1e12_seconds_are_422(device, site):
+    session = open_session(device, site)
+    step = {"t": 1e308, "length_m": 0.7, "heading_deg": 0}
+    assert device.post(f"/api/v1/sessions/{session}/batches", json={"seq": 0, "steps": [step]}).status_code == 422
+    step["t"] = 1.0
+    assert device.post(f"/api/v1/sessions/{session}/batches", json={"seq": 0, "steps": [step]}).status_code == 200
+
+
+def test_json_routes_refuse_another_content_type_with_415(device, site):
+    session = open_session(device, site)
+    body = b'{"seq": 0, "steps": [], "scans": []}'
+    for content_type in ("text/plain", "application/x-www-form-urlencoded"):
+        answer = device.post(f"/api/v1/sessions/{session}/batches", content=body, headers={"Content-Type": content_type})
+        assert answer.status_code == 415, answer.text
+    answer = device.post(f"/api/v1/sites/{site['id']}/locate", content=b'{"rss": {}}', headers={"Content-Type": "text/csv"})
+    assert answer.status_code == 415
+    assert device.post(f"/api/v1/sessions/{session}/batches", content=body,
+                       headers={"Content-Type": "application/json; charset=utf-8"}).status_code == 200
+
+
+def test_a_huge_batch_is_413_before_it_is_read(device, site):
+    """A 60 MB batch (1.4 M steps) is refused as it arrives, declared or streamed, never parsed."""
+    session = open_session(device, site)
+    step = b'{"t": 1.0, "length_m": 0.7, "heading_deg": 0},'
+    chunk = step * 10_000
+    declared = device.post(f"/api/v1/sessions/{session}/batches", content=b'{"seq": 0, "steps": [' + chunk * 130 + b"]}",
+                           headers={"Content-Type": "application/json"})
+    assert declared.status_code == 413
+
+    def stream():
+        yield b'{"seq": 0, "steps": ['
+        for _ in range(130):
+            yield chunk
+
+    streamed = device.post(f"/api/v1/sessions/{session}/batches", content=stream(), headers={"Content-Type": "application/json"})
+    assert streamed.status_code == 413 and "exceeds 4194304 bytes" in streamed.text
+    big_locate = device.post(f"/api/v1/sites/{site['id']}/locate", content=b'{"rss": {' + b" " * 300_000 + b"}}",
+                             headers={"Content-Type": "application/json"})
+    assert big_locate.status_code == 413
+    full = {"seq": 0, "steps": [{"t": i, "length_m": 0.7, "heading_deg": 0} for i in range(1000)],
+            "scans": [{"t": i + 0.5, "rss": {f"wifi:ap{j}": -60.0 for j in range(50)}} for i in range(1000)]}
+    assert device.post(f"/api/v1/sessions/{session}/batches", json=full).status_code != 413  # the limit fits a full batch
