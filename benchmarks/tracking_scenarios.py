@@ -37,7 +37,8 @@ from client_sim.runs import run_survey, track_phone  # noqa: E402
 from client_sim.server_process import free_port, start_server, stop_server  # noqa: E402
 from client_sim.world import get_world  # noqa: E402
 
-FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
+#: the self-calibrating filters, their two-state seed forms (``-xy``) and the linear ones
+FILTERS = ("skpf", "ekf", "ukf", "pf", "skpf-xy", "ekf-xy", "ukf-xy", "pf-xy", "kf", "fkf")
 SCENARIOS = {"open_room": "good signal", "corridor_loop": "poor signal"}
 
 
@@ -129,7 +130,7 @@ def main() -> None:
     print(text)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "tracking.md").write_text(text + "\n")
+    (out / "tracking.md").write_text(text + "\n")  # beside the JSON, under --out
     (out / "tracking.json").write_text(json.dumps({"results": results, "cost_us": cost}, indent=1))
 
 
