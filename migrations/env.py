@@ -1,6 +1,7 @@
 """Alembic environment: the URL comes from the caller or from LOCALIZER_DATABASE_URL.
 
 On PostgreSQL the upgrade holds an advisory lock, so replicas starting together migrate once.
+On SQLite foreign keys are off while migrations run (table rebuilds must not cascade).
 """
 
 from alembic import context
@@ -30,5 +31,18 @@ if context.is_offline_mode():
 else:
     engine = make_engine(url)
     with engine.connect() as connection:
-        run(connection)
+        sqlite = connection.dialect.name == "sqlite"
+        if sqlite:
+            # SQLite rebuilds tables to alter them: with foreign keys on, dropping the old table
+            # would cascade-delete its children. Off for the migration (only outside a transaction).
+            connection.exec_driver_sql("PRAGMA foreign_keys=OFF")
+            connection.commit()
+        try:
+            run(connection)
+            if connection.in_transaction():
+                connection.commit()
+        finally:
+            if sqlite:
+                connection.exec_driver_sql("PRAGMA foreign_keys=ON")
+                connection.commit()
     engine.dispose()

@@ -67,6 +67,8 @@ class ApiKey(Base):
 
 class Site(Base):
     __tablename__ = "sites"
+    #: SQLite: ids of deleted sites are never reused (a client holding one cannot write into a new site)
+    __table_args__ = {"sqlite_autoincrement": True}
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200), unique=True)
     settings: Mapped[dict[str, Any]] = mapped_column(default=dict)
