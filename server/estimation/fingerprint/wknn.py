@@ -62,7 +62,7 @@ class WKNNModel(FingerprintModel):
                  offset_estimate: bool = True, offset_neighbours: int = 10, offset_max_db: float = 15.0,
                  offset_iterations: int = 3,
                  calibrate: str | None = "points", cv_rows: int = 1500,
-                 missing: str = "powed", floor_classifier: str | None = None, **common):
+                 missing: str = "exponential", floor_classifier: str | None = None, **common):
         super().__init__(missing=missing, floor_classifier=floor_classifier, **common)
         if distance not in DISTANCES:
             raise ValueError(f"distance must be one of {DISTANCES}")
