@@ -133,25 +133,32 @@ def site_calibration(maps: list[Prepared], min_segment_m: float = 3.0) -> dict:
             offsets.append(off)
             ks.append(k)
     if not offsets:
-        return {"heading_offset_deg": 0.0, "weinberg_k": 0.45, "heading_std_deg": 8.0, "length_std_m": 0.1,
+        return {"heading_offset_deg": 0.0, "weinberg_k": 0.45, "heading_std_deg": 8.0, "heading_white_std_deg": 5.0,
+                "length_std_m": 0.1,
                 "walks": 0}
     off, k = _circular_median(offsets), float(np.median(ks))
     spread = np.degrees(np.abs(np.angle(np.exp(1j * np.radians(np.asarray(offsets) - off)))))
     h_res: list[float] = []
+    h_white: list[float] = []  # about each walk's own median: the part a bias state does not explain
     l_res: list[float] = []
     lengths: list[float] = []
     for p in maps:
         pdr, true = segment_displacements(p.events, p.walk.waypoints, k)
+        walk_res = []
         for a, b in zip(pdr, true, strict=True):
             lb, la = float(np.linalg.norm(b)), float(np.linalg.norm(a))
             if lb < min_segment_m or la == 0:
                 continue
             d = math.degrees(math.atan2(a[0], a[1])) + off - math.degrees(math.atan2(b[0], b[1]))
-            h_res.append((d + 180) % 360 - 180)
+            walk_res.append((d + 180) % 360 - 180)
             l_res.append(la / lb)
+        h_res += walk_res
+        if len(walk_res) >= 3:
+            h_white += (np.asarray(walk_res) - float(np.median(walk_res))).tolist()
         lengths.extend(weinberg(p.events.swing, np.zeros_like(p.events.swing), k))
     return {"heading_offset_deg": round(off, 2), "weinberg_k": round(k, 4), "walks": len(offsets),
             "heading_std_deg": round(_robust_std(h_res), 1) if h_res else 8.0,
+            "heading_white_std_deg": round(_robust_std(h_white), 1) if h_white else 5.0,
             "length_std_m": round(_robust_std(l_res) * float(np.median(lengths)), 3) if l_res else 0.1,
             "segments": len(h_res), "offset_abs_dev_p50_deg": round(float(np.median(spread)), 1),
             "k_range": [round(float(min(ks)), 3), round(float(max(ks)), 3)]}
@@ -293,6 +300,9 @@ class Options:
     initial: str = "yes"  # "yes" | "no" | "both"
     fix_noise: str = "auto"  # "auto" | "model" (see build_map)
     concurrency: int = 4
+    #: the step noise the phone declares: "site" = the per-segment spread (bias included),
+    #: "white" = the spread about each walk's own median (the bias left to the trackers)
+    step_noise: str = "site"
 
 
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
@@ -303,7 +313,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
     site_cal = site_calibration(maps)
     progress(f"site calibration from {site_cal['walks']} map walks: heading offset "
              f"{site_cal['heading_offset_deg']}°, Weinberg k {site_cal['weinberg_k']}; declared step noise "
-             f"{site_cal['length_std_m']} m, {site_cal['heading_std_deg']}°")
+             f"{site_cal['length_std_m']} m, "
+             f"{site_cal['heading_white_std_deg' if opt.step_noise == 'white' else 'heading_std_deg']}° ({opt.step_noise})")
     floor_info = {}
     fi = Path(data_dir) / "floor_info.json"
     if fi.exists():
@@ -335,7 +346,9 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             else:
                 cal = {k: site_cal[k] for k in ("heading_offset_deg", "weinberg_k")}
                 eval_from = w.t_start
-            noise = {"length_std_m": site_cal["length_std_m"], "heading_std_deg": site_cal["heading_std_deg"]}
+            noise = {"length_std_m": site_cal["length_std_m"],
+                     "heading_std_deg": site_cal["heading_white_std_deg" if opt.step_noise == "white"
+                                                 else "heading_std_deg"]}
             steps = steps_from_events(p.events, cal["weinberg_k"], cal["heading_offset_deg"], **noise)
             methods: dict[str, list[dict]] = {}
             async with sem:
@@ -442,7 +455,7 @@ def main(a) -> int:
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
-                  fix_noise=a.fix_noise)
+                  fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"))
     server, tmp = None, None
     url, admin_key, device_key = a.url, a.admin_key, a.device_key
     if not url:
