@@ -12,8 +12,10 @@ import pytest
 CHROMIUM = os.environ.get("LOCALIZER_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator:
+    """Module scope, not session: Playwright's sync API runs an event loop on the main thread
+    while it is open, and later tests call ``asyncio.run``."""
     if CHROMIUM is None:
         pytest.skip("no chromium installed (apt-get install chromium)")
     sync_api = pytest.importorskip("playwright.sync_api")
