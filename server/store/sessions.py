@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
 from server.estimation.types import CrowdPoint, Estimate
+from server.store._results import first, tuples
 from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession
 
 _SESSIONS, _SITES = cast(Table, TrackingSession.__table__), cast(Table, Site.__table__)
@@ -135,7 +136,7 @@ def track(s: Session, session_id: str) -> list[Estimate]:
         .order_by(_ESTIMATES.c.idx)
     )
     return [Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source)
-            for t, x, y, floor, c, source in rows.tuples()]
+            for t, x, y, floor, c, source in tuples(rows)]
 
 
 def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:
@@ -149,7 +150,7 @@ def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> 
         .limit(limit)
     )
     return [(idx, Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source))
-            for idx, t, x, y, floor, c, source in rows.tuples()]
+            for idx, t, x, y, floor, c, source in tuples(rows)]
 
 
 def open_sessions_of_site(s: Session, site_id: int) -> dict[str, int]:
@@ -158,7 +159,7 @@ def open_sessions_of_site(s: Session, site_id: int) -> dict[str, int]:
         select(_SESSIONS.c.id, _SESSIONS.c.track_length)
         .where(_SESSIONS.c.site_id == site_id, _SESSIONS.c.status == "open")
     )
-    return dict(rows.tuples().all())
+    return dict(tuples(rows))
 
 
 def close_session(s: Session, session_id: str) -> bool:
@@ -177,7 +178,7 @@ def close_session(s: Session, session_id: str) -> bool:
 def feed_state(conn: Connection, session_id: str) -> FeedState | None:
     """The session's row with its site's revision, or None. A plain read (no lock):
     ``save_batch`` checks that nothing changed since."""
-    row = conn.execute(_FEED_STATE, {"session_id": session_id}).tuples().first()
+    row = first(conn.execute(_FEED_STATE, {"session_id": session_id}))
     return None if row is None else FeedState(*row)
 
 
@@ -229,7 +230,7 @@ def nearby_crowd_points(
         "site_id": site_id, "floor": floor, "x0": x - radius_m, "x1": x + radius_m, "y0": y - radius_m,
         "y1": y + radius_m,
     })
-    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in rows.tuples()]
+    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in tuples(rows)]
 
 
 def add_crowd_fingerprint(

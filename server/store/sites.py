@@ -13,7 +13,7 @@ from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload
 
 from server.domain import Floor, NewSite, Site, SiteContextRecord, SiteCounts, Transmitter, Wall
-from server.store._results import changed
+from server.store._results import changed, tuples
 from server.tables import Fingerprint, ReferencePoint, new_revision
 from server.tables import Floor as FloorRow
 from server.tables import Site as SiteRow
@@ -160,7 +160,7 @@ def site_context(s: Session, site_id: int) -> SiteContextRecord | None:
     return SiteContextRecord(
         revision=site.revision,
         settings=dict(site.settings or {}),
-        walls={level: _walls(walls) for level, walls in floors.tuples()},
+        walls={level: _walls(walls) for level, walls in tuples(floors)},
         transmitters=tuple(positioned_transmitters(s, site_id)),
     )
 

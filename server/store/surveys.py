@@ -13,6 +13,7 @@ from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import FingerprintRecord, ReferencePointSummary, SurveyOutcome
+from server.store._results import tuples
 from server.store.sites import add_heard_transmitters
 from server.tables import Fingerprint, ReferencePoint, SurveyUpload
 
@@ -178,7 +179,7 @@ def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
         .where(ReferencePoint.site_id == site_id)
         .order_by(ReferencePoint.floor, ReferencePoint.id)
     )
-    return [ReferencePointSummary(*row) for row in rows.tuples()]
+    return [ReferencePointSummary(*row) for row in tuples(rows)]
 
 
 def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:
@@ -194,4 +195,4 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[Fingerp
     )
     if not include_crowd:
         query = query.where(Fingerprint.source == "survey")
-    return [FingerprintRecord(*row) for row in s.execute(query).tuples()]
+    return [FingerprintRecord(*row) for row in tuples(s.execute(query))]
