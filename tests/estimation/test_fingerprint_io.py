@@ -24,7 +24,7 @@ def site_and_survey():
     return site, site.survey(scans_per_rp=4, seed=0)
 
 
-@pytest.mark.parametrize("name", ["knn", "nbc", "kde", "tkbe", "svm", "propagation"])
+@pytest.mark.parametrize("name", ["wknn", "knn", "nbc", "kde", "tkbe", "svm", "propagation"])
 def test_artifact_round_trip(name, site_and_survey):
     site, fs = site_and_survey
     params = {"time_budget_s": 2.0, "C": 10.0} if name == "svm" else {}
