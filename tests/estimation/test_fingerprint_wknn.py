@@ -201,3 +201,15 @@ def test_an_artifact_of_another_library_version_is_refused(site_and_model):
     doc = {"library_version": "fingerprint-0.1", "model": None}
     with pytest.raises(ArtifactError, match="retrain"):
         from_bytes(_blob_with(_npz(doc)))
+
+
+@pytest.mark.parametrize("candidates", [12, 40, 96])
+def test_the_fast_hierarchy_equals_the_full_one(campus, candidates):
+    b0, b1, fs = campus
+    model = make_model("wknn", {"k": 4, "calibrate": None}).fit(fs)
+    model.CANDIDATES = candidates  # few candidates: many queries take the fallback
+    rng = np.random.default_rng(1)
+    scans = [site.scan(x, y, f, None, rng, noise_db=5.0) for site in (b0, b1) for _, x, y, f in site.rp]
+    Q = model.encoder_.transform(model.scan_matrix(scans))
+    D = model._offset_distances(Q, None)
+    assert np.allclose(model._hierarchy_scores(D), model._scores(model._restrict(D), model.k_))
