@@ -9,7 +9,18 @@ per query, each over a float32 fingerprint matrix held densely in memory:
    A scan in building 1 therefore never answers a floor of building 0.
 3. **Position**: the ``k`` nearest fingerprints *of that floor* give the posterior over
    reference points (weights 1/d); ``k=None`` picks k by cross-validation over
-   held-out groups of the training data (users or devices when present).
+   held-out reference points of the training data.
+
+The three steps are resolved from each query's ``CANDIDATES`` nearest fingerprints
+(one partial sort), falling back to the full matrix when those hold too few of the
+chosen building or floor, so the answer is exactly the full computation's.
+
+**Calibration.** The fix's covariance (the posterior's spread + ``cov_floor_m²``) is
+multiplied by ``cov_scale_``, fitted at training so that the median normalised
+innovation squared ``rᵀC⁻¹r`` of internally held-out fixes is that of a calibrated 2-D
+Gaussian (χ²₂ median 2 ln 2, mean 2). ``calibrate="points"`` (default) holds out whole
+reference points (a scan where nobody surveyed, chosen on UJIIndoorLoc's choosing
+users), ``"rows"`` held-out scans at surveyed points, ``"mixed"`` both, None off.
 
 Distances use the sparsity of a scan (it hears a few dozen of hundreds of
 transmitters): with features ≥ 0 and 0 = not heard,
@@ -51,8 +62,9 @@ class WKNNModel(FingerprintModel):
     offset search (0 = off); min_tx_rows: transmitters heard by fewer fingerprints are
     ignored; dedupe: drop exact duplicate fingerprints; offset_estimate: per-query RSS
     offset from the nearest ``offset_neighbours`` fingerprints (at most ±``offset_max_db``);
-    calibrate: scale the fixes' covariance so held-out NIS averages 2 (``cov_scale_``);
-    cv_rows: held-out rows used by the cross-validation (k and calibration)."""
+    calibrate: "points", "rows", "mixed" or None — the held-out residuals the covariance
+    scale ``cov_scale_`` is fitted on (module docstring); cv_rows: held-out scans used by
+    the cross-validation (k and calibration)."""
 
     name = "wknn"
     CANDIDATES = 96  # nearest fingerprints per query the hierarchy is resolved from
@@ -123,12 +135,10 @@ class WKNNModel(FingerprintModel):
         held-out *reference points* (all their scans out of the map): a walker's scan is
         usually taken between surveyed points, which is what this mimics.
 
-        ``cov_scale_`` (when ``calibrate``): fixes between surveyed points err more than
-        fixes at one, so the calibration residuals are half of each kind — held-out
-        reference points, and held-out scans (users, else devices, else random rows) at
-        reference points that stay in the map; the scale makes their normalised
-        innovation squared ``rᵀ C⁻¹ r`` average 2, its value for a calibrated 2-D
-        Gaussian."""
+        ``cov_scale_`` (when ``calibrate``): median NIS of the held-out fixes (raw
+        covariance) over the χ²₂ median — on held-out reference points ("points"), on
+        held-out scans (users, else devices, else random rows) at reference points that
+        stay in the map ("rows"), or on both pooled ("mixed")."""
         fs = data.fs.subset(keep_rows)
         n = len(fs)
         rng = np.random.default_rng(0)
@@ -143,6 +153,18 @@ class WKNNModel(FingerprintModel):
         self.k_ = int(grid[best])
         if self.calibrate is None:
             return
+        nis_row: list[np.ndarray] = [np.zeros(0)]
+        if self.calibrate in ("rows", "mixed"):
+            nis_row = self._row_pass(fs, rng)
+        med = lambda v: float(np.median(v)) if len(v) else float("nan")  # noqa: E731
+        self.cv_nis_median_ = {"points": med(nis_rp[best]), "rows": med(nis_row[0]),
+                               "mixed": med(np.concatenate([nis_rp[best], nis_row[0]]))}
+        ref = self.cv_nis_median_[self.calibrate]
+        if np.isfinite(ref) and ref > 0:
+            self.cov_scale_ = ref / _CHI2_2_MEDIAN
+
+    def _row_pass(self, fs, rng) -> list[np.ndarray]:
+        n = len(fs)
         groups = fs.user if fs.user is not None else fs.device
         if groups is not None and len(set(groups.astype(str))) >= 3:
             names = np.unique(groups.astype(str))
@@ -150,13 +172,7 @@ class WKNNModel(FingerprintModel):
             fold_row = np.array([fold_of[g] for g in groups.astype(str)])
         else:
             fold_row = rng.integers(0, CV_FOLDS, n)
-        _, nis_row, count_row = self._cv_pass(fold_row, (self.k_,), rng)
-        med = lambda v: float(np.median(v)) if len(v) else float("nan")  # noqa: E731
-        self.cv_nis_median_ = {"points": med(nis_rp[best]), "rows": med(nis_row[0]),
-                               "mixed": med(np.concatenate([nis_rp[best], nis_row[0]]))}
-        ref = self.cv_nis_median_[self.calibrate]
-        if np.isfinite(ref) and ref > 0:
-            self.cov_scale_ = ref / _CHI2_2_MEDIAN
+        return self._cv_pass(fold_row, (self.k_,), rng)[1]
 
     def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[np.ndarray], int]:
         """Sum of errors per k over the folds, the NIS values (raw covariance) per k, and
