@@ -213,3 +213,16 @@ def test_the_fast_hierarchy_equals_the_full_one(campus, candidates):
     Q = model.encoder_.transform(model.scan_matrix(scans))
     D = model._offset_distances(Q, None)
     assert np.allclose(model._hierarchy_scores(D), model._scores(model._restrict(D), model.k_))
+
+
+def test_a_scan_resembling_nothing_surveyed_is_out_of_coverage(site_and_model):
+    site, model = site_and_model
+    rng = np.random.default_rng(4)
+    inside = [site.scan(x, y, f, None, rng) for _, x, y, f in site.rp]
+    _, ok = model.coverage(inside)
+    assert ok.mean() >= 0.9
+    ids = [t["id"] for t in site.transmitters]
+    strange = [{ids[j]: float(rng.uniform(-95, -30)) for j in rng.choice(len(ids), 3, replace=False)}
+               for _ in range(20)]  # 3 transmitters, random levels: no surveyed place looks like that
+    far, ok = model.coverage(strange)
+    assert ok.mean() <= 0.3 and np.all(np.isfinite(far))

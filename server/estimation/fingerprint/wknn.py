@@ -115,6 +115,7 @@ class WKNNModel(FingerprintModel):
                          data.rp.row_rp[keep_rows], data.row_group[keep_rows])
         self.k_ = self.k if self.k is not None else 3
         self.cov_scale_ = 1.0
+        self.coverage_threshold_ = float("inf")
         if self.k is None or self.calibrate is not None:
             self._cross_validate(data, keep_rows)
 
@@ -148,6 +149,10 @@ class WKNNModel(FingerprintModel):
         errs, nis_rp, count = self._cv_pass(fold_rp, grid, rng)
         if count == 0:
             return
+        # a scan farther from every fingerprint than 99 % of the scans at held-out
+        # reference points were from theirs resembles nothing surveyed
+        self.coverage_threshold_ = float(np.quantile(self._cv_nearest, 0.99))
+        del self._cv_nearest
         self.k_cv_errors_ = (errs / count).tolist()
         best = int(np.argmin(errs))
         self.k_ = int(grid[best])
@@ -181,6 +186,7 @@ class WKNNModel(FingerprintModel):
         rp_all, grp_all = self.row_rp_, self.row_group_
         errs = np.zeros(len(grid))
         nis: list[list[np.ndarray]] = [[] for _ in grid]
+        nearest: list[np.ndarray] = []
         count = 0
         try:
             for f in range(CV_FOLDS):
@@ -200,6 +206,7 @@ class WKNNModel(FingerprintModel):
                     continue
                 truth = self.rp_xy_[rp_all[te]]
                 order = self._nearest(D, max(grid))
+                nearest.append(np.take_along_axis(D, order[:, :1], axis=1)[:, 0])
                 for i, k in enumerate(grid):
                     with np.errstate(divide="ignore"):
                         pred = super()._reduce(np.log(self._scores(D, k, order)))
@@ -209,6 +216,7 @@ class WKNNModel(FingerprintModel):
                 count += len(te)
         finally:
             self._set_matrix(X_all, H_all, rp_all, grp_all)
+        self._cv_nearest = np.concatenate(nearest) if nearest else np.zeros(0)
         return errs, [np.concatenate(v) if v else np.zeros(0) for v in nis], count
 
     # ---- distances ---------------------------------------------------------------------
@@ -336,6 +344,18 @@ class WKNNModel(FingerprintModel):
     def _position(self, D: np.ndarray, k: int) -> np.ndarray:
         s = self._scores(D, k)
         return (s @ self.rp_xy_) / np.maximum(s.sum(axis=1, keepdims=True), 1e-300)
+
+    def coverage(self, rss) -> tuple[np.ndarray, np.ndarray]:
+        """(distance to the nearest fingerprint, in-coverage flag) per scan — rss as
+        ``predict`` takes it. A scan is out of coverage when it is farther from every
+        fingerprint (after the offset estimate) than 99 % of the internally held-out
+        scans at unsurveyed reference points were (``coverage_threshold_``): it
+        resembles nothing surveyed, and its fix is only "the nearest room"."""
+        self._check_fitted()
+        Q = self.encoder_.transform(self._as_matrix(rss))
+        D = self._offset_distances(Q, None if not self.use_heading else self._headings(None, len(Q)))
+        nearest = D.min(axis=1) if D.shape[1] else np.full(len(Q), np.inf)
+        return nearest, nearest <= self.coverage_threshold_
 
     def _reduce(self, logs: np.ndarray):
         pred = super()._reduce(logs)
