@@ -12,7 +12,7 @@ phone, so a held-out user is also a held-out phone):
 Baseline: a bare scikit-learn brute-force KNN, k = 3, −110 dBm for not heard (raw
 dBm features), floor and building by the same 3 neighbours (majority).
 
-    .venv/bin/python -m benchmarks.fingerprint_choice [--stage choose|report|both] [--sample N]
+    .venv/bin/python -m benchmarks.fingerprint_choice [--stage choose|report|both] [--sample N] [--shift dB]
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -98,6 +99,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--stage", default="choose", choices=["choose", "report", "both"])
     ap.add_argument("--sample", type=int, default=0, help="subsample test rows (0 = all)")
+    ap.add_argument("--shift", type=float, default=0.0,
+                    help="add this many dB to every test reading (a phone with an RSS offset)")
     ap.add_argument("--only", default="", help="semicolon-separated substrings of candidate names")
     ap.add_argument("--report-models", help="semicolon-separated candidate names measured on REPORT",
                     default="wknn exponential sorensen (chosen: the default);wknn exponential sorensen, no offset estimate;"
@@ -113,8 +116,10 @@ def main(argv=None) -> int:
         test = fs.subset(np.isin(user, list(held)))
         if a.sample and a.sample < len(test):
             test = test.subset(np.sort(np.random.default_rng(0).choice(len(test), a.sample, replace=False)))
+        if a.shift:
+            test = replace(test, rss=test.rss + a.shift)
         print(f"## {stage}: train {len(train)} rows (users outside {sorted(out_train)}), "
-              f"test {len(test)} rows (users {sorted(held)})", flush=True)
+              f"test {len(test)} rows (users {sorted(held)}), readings shifted by {a.shift:+g} dB", flush=True)
         rows = [baseline(train, test)]
         print(json.dumps(rows[-1]), flush=True)
         names = list(CANDIDATES) if stage == "choose" else [n.strip() for n in a.report_models.split(";")]
