@@ -9,7 +9,7 @@ import pickle
 import numpy as np
 import pytest
 
-from server.estimation.fingerprint import ArtifactError, FingerprintSet, from_bytes, make_model, to_bytes
+from server.estimation.fingerprint import ArtifactError, FingerprintSet, checksum, from_bytes, make_model, to_bytes
 from server.estimation.fingerprint.artifact import LIBRARY_VERSION, MAGIC
 from tests.helpers.synthetic import make_site
 
@@ -173,8 +173,11 @@ def test_a_pickled_artifact_is_refused_without_being_run():
     for blob in (b"LOCFP1\n" + hashlib.sha256(payload).digest() + payload, _blob_with(payload)):
         with pytest.raises(ArtifactError):
             from_bytes(blob)
+    old = b"LOCFP1\n" + hashlib.sha256(payload).digest() + payload
     with pytest.raises(ArtifactError, match="retrain"):
-        from_bytes(b"LOCFP1\n" + hashlib.sha256(payload).digest() + payload)
+        from_bytes(old)
+    with pytest.raises(ArtifactError, match="retrain"):
+        checksum(old)  # the server checks the recorded hash first
 
 
 def test_a_tampered_artifact_naming_another_class_is_refused():

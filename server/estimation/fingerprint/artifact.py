@@ -175,9 +175,14 @@ def _hashable(v):
     return tuple(_hashable(x) for x in v) if isinstance(v, (list, tuple)) else v
 
 
+_OLD = "old pickled model artifact: refused (it could run code when loaded); retrain the model"
+
+
 def checksum(blob: bytes) -> str:
     """Hex sha256 of the payload as recorded in the blob (for the server's records)."""
     blob = bytes(blob)
+    if any(blob.startswith(m) for m in OLD_MAGICS):
+        raise ArtifactError(_OLD)
     if not blob.startswith(MAGIC) or len(blob) < len(MAGIC) + _DIGEST:
         raise ArtifactError("not a fingerprint-model artifact")
     return blob[len(MAGIC): len(MAGIC) + _DIGEST].hex()
@@ -186,7 +191,7 @@ def checksum(blob: bytes) -> str:
 def from_bytes(blob: bytes) -> FingerprintModel:
     blob = bytes(blob)
     if any(blob.startswith(m) for m in OLD_MAGICS):
-        raise ArtifactError("old pickled model artifact: refused (it could run code when loaded); retrain the model")
+        raise ArtifactError(_OLD)
     if not blob.startswith(MAGIC) or len(blob) < len(MAGIC) + _DIGEST:
         raise ArtifactError("not a fingerprint-model artifact (bad header)")
     digest = blob[len(MAGIC): len(MAGIC) + _DIGEST]
