@@ -229,3 +229,22 @@ def test_a_scan_resembling_nothing_surveyed_is_out_of_coverage(site_and_model):
                for _ in range(20)]  # 3 transmitters, random levels: no surveyed place looks like that
     far, ok = model.coverage(strange)
     assert ok.mean() <= 0.3 and np.all(np.isfinite(far))
+
+
+def test_the_reduction_over_weighted_points_equals_the_dense_one(campus):
+    from server.estimation.fingerprint.base import FingerprintModel
+
+    b0, b1, fs = campus
+    model = make_model("wknn", {"k": 5}).fit(fs)
+    rng = np.random.default_rng(6)
+    scans = [site.scan(x, y, f, None, rng, noise_db=4.0) for site in (b0, b1) for _, x, y, f in site.rp]
+    Q = model.encoder_.transform(model.scan_matrix(scans))
+    logs = model._log_scores(Q, None, None)
+    fast = model._reduce(logs)
+    dense = FingerprintModel._reduce(model, logs)
+    assert np.allclose(fast.xy, dense.xy) and np.array_equal(fast.floor, dense.floor)
+    assert np.array_equal(fast.building, dense.building) and np.array_equal(fast.best_rp, dense.best_rp)
+    assert np.allclose(fast.covariance, dense.covariance * model.cov_scale_)
+    live = dense.top_p > 0
+    assert np.array_equal(np.where(live, fast.top_rp, -1), np.where(live, dense.top_rp, -1))
+    assert fast.top_rp.shape == (len(scans), model.n_candidates)

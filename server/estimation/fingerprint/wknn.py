@@ -48,6 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import FingerprintModel, TrainingData
+from .posterior import reduce_posterior
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
@@ -358,7 +359,24 @@ class WKNNModel(FingerprintModel):
         return nearest, nearest <= self.coverage_threshold_
 
     def _reduce(self, logs: np.ndarray):
-        pred = super()._reduce(logs)
+        """The base reduction over only the reference points some query of the chunk
+        gives weight to (at most k per query instead of every reference point), indices
+        mapped back; candidates padded with (-1, 0) to ``n_candidates``."""
+        cols = np.flatnonzero(np.isfinite(logs).any(axis=0))
+        if len(cols) == 0 or len(cols) == logs.shape[1]:
+            pred = super()._reduce(logs)
+        else:
+            pred = reduce_posterior(
+                logs[:, cols], self.rp_xy_[cols], self.rp_group_[cols], self.group_floor_,
+                self.group_building_, self.cov_floor_m_, self.n_candidates,
+            )
+            pred.best_rp = cols[pred.best_rp]
+            top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
+            pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
+            if pad > 0:
+                top = np.pad(top, ((0, 0), (0, pad)), constant_values=-1)
+                pred.top_p = np.pad(pred.top_p, ((0, 0), (0, pad)))
+            pred.top_rp = top
         pred.covariance *= self.cov_scale_
         return pred
 
