@@ -16,8 +16,9 @@ phone held askew, gyro drift), so an independent-noise model lets the error grow
 while the covariance grows like √n, and the innovation gate then refuses the very fixes
 that would correct it.
 
-The default noise levels come from data (``docs/tracking-noise.md``, ``benchmarks/
-pdr_noise.py``): see the constants below; the phone's own ``length_std_m`` and
+The default noise levels come from data (``benchmarks/pdr_noise.py`` on the shared MSFT
+walks, then a choice on the tune scenarios of ``benchmarks/scenario_family.py``; the
+README's "Tracking design" gives the figures); the phone's own ``length_std_m`` and
 ``heading_std_deg`` are the white per-step part.
 """
 
