@@ -18,10 +18,15 @@ BATCH_ROUTE = re.compile(r"^/api/v1/sessions/[^/]+/batches$")
 LOCATE_ROUTE = re.compile(r"^/api/v1/sites/[^/]+/locate$")
 
 
+#: the most header bytes (names and values) a request may carry: 431 beyond
+MAX_HEADER_BYTES = 32 * 1024
+
+
 class BodySizeLimit:
     """Pure ASGI middleware: 413 on a too-large Content-Length, or once a streamed body passes the
     limit (``max_bytes``, or the first of ``routes`` whose pattern matches the path); 408 when the
-    client stops sending a body it started for ``read_timeout_s``."""
+    client stops sending a body it started for ``read_timeout_s``; 431 when its headers exceed
+    ``MAX_HEADER_BYTES``."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, routes: Sequence[tuple[re.Pattern[str], int]] = (),
                  read_timeout_s: float | None = None):
@@ -36,6 +41,9 @@ class BodySizeLimit:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
+            return
+        if sum(len(name) + len(value) for name, value in scope["headers"]) > MAX_HEADER_BYTES:
+            await send_json(send, 431, {"detail": f"request headers exceed {MAX_HEADER_BYTES} bytes"})
             return
         limit = self.limit_for(scope.get("path", ""))
         declared = dict(scope["headers"]).get(b"content-length")

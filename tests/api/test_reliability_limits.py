@@ -57,3 +57,10 @@ def test_a_database_that_is_gone_is_503_with_retry_after(server_without_database
 def test_readiness_tries_a_write(live_server, clean_db):
     with httpx.Client(base_url=live_server.url) as client:
         assert client.get("/readyz").json() == {"status": "ok"}
+
+
+def test_oversized_headers_are_431(live_server, clean_db):
+    with httpx.Client(base_url=live_server.url, headers={"Authorization": f"Bearer {ADMIN_KEY}"}) as client:
+        answer = client.get("/api/v1/sites", headers={f"X-Pad-{i}": "p" * 4000 for i in range(10)})
+        assert answer.status_code == 431
+        assert client.get("/api/v1/sites", headers={"X-Pad": "p" * 4000}).status_code == 200
