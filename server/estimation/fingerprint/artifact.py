@@ -106,7 +106,7 @@ class _Encoder:
             return {"$tree": self.enc(tuple(args)), "state": self.enc(o.__getstate__())}
         if key not in ALLOWED:
             raise ArtifactError(f"cannot store an object of class {key[0]}.{key[1]}")
-        state = o.__getstate__() if key[0].startswith("sklearn.") else vars(o)
+        state = o.__getstate__()  # vars(o) unless the class says otherwise
         return {"$o": f"{key[0]}:{key[1]}", "state": self.enc(dict(state))}
 
 
@@ -163,7 +163,7 @@ class _Decoder:
             state = self.dec(o["state"])
             if not isinstance(state, dict):
                 raise ArtifactError("artifact object state is not a mapping")
-            if module.startswith("sklearn."):
+            if hasattr(obj, "__setstate__"):
                 obj.__setstate__(state)
             else:
                 vars(obj).update(state)  # frozen dataclasses too: no __setattr__ involved

@@ -98,6 +98,23 @@ class WKNNModel(FingerprintModel):
         self.offset_max_db = float(offset_max_db)
         self.offset_iterations = int(offset_iterations)
 
+    # ---- state (artifacts store the mostly-zero matrix sparse) ---------------------------
+    def __getstate__(self) -> dict:
+        from scipy import sparse
+
+        state = dict(vars(self))
+        if isinstance(state.get("XT_"), np.ndarray):
+            state["XT_"] = sparse.csr_matrix(state["XT_"])
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        from scipy import sparse
+
+        state = dict(state)
+        if sparse.issparse(state.get("XT_")):
+            state["XT_"] = np.ascontiguousarray(state["XT_"].toarray(), dtype=np.float32)
+        vars(self).update(state)
+
     # ---- fit ---------------------------------------------------------------------------
     def _fit(self, X, H, data: TrainingData) -> None:
         X = np.asarray(X, dtype=np.float32)
