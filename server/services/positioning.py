@@ -52,10 +52,12 @@ class ModelCache:
                 artifact = store.model_artifact(s, model_id)
             if artifact is None or artifact.sha256 != sha256:
                 raise Conflict(f"model {model_id} changed while it was being loaded; retry")
-            blob = artifact.blob
-            if checksum(blob) != sha256:
-                raise ArtifactError(f"model {model_id}: artifact does not match its recorded SHA-256")
-            model = from_bytes(blob)
+            try:
+                if checksum(artifact.blob) != sha256:
+                    raise ArtifactError("the artifact does not match its recorded SHA-256")
+                model = from_bytes(artifact.blob)
+            except ArtifactError as exc:  # tampered, or stored by another library version
+                raise Conflict(f"model {model_id} cannot be loaded ({exc}); train a new model") from None
             self.loads += 1
             self._models.put(sha256, model)
             return model

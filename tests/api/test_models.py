@@ -172,3 +172,30 @@ def test_a_deleted_sites_model_never_answers_for_a_new_site_that_reuses_its_ids(
         answers.append((site["id"], model["id"], fix["x"] - shift - x))
         assert admin.delete(f"/api/v1/sites/{site['id']}").status_code == 204
     assert all(abs(dx) < 2.0 for _, _, dx in answers), answers
+
+
+def test_an_artifact_that_cannot_load_is_a_409_for_locate_and_a_skipped_scan_for_a_batch(admin, device, site, clean_db):
+    """A stored artifact this library refuses (an old pickle, or rewritten) never becomes a 500:
+    locate answers 409 asking for a new model, a batch skips the scan with that reason."""
+    import hashlib
+
+    from sqlalchemy import create_engine, update
+
+    from server.tables import ModelArtifact
+
+    model = train(admin, site, algorithm="knn")
+    blob = b"\x80\x04\x95not a model"  # a pickle's opening bytes; never unpickled
+    engine = create_engine(clean_db)
+    with engine.begin() as conn:
+        conn.execute(update(ModelArtifact).where(ModelArtifact.model_id == model["id"])
+                     .values(blob=blob, sha256=hashlib.sha256(blob).hexdigest()))
+    engine.dispose()
+    scan = SYNTH.scan(4.0, 4.0, 0, None, np.random.default_rng(1), 1.0)
+
+    answer = device.post(f"/api/v1/sites/{site['id']}/locate", json={"rss": scan})
+    assert answer.status_code == 409 and "train a new model" in answer.json()["detail"], answer.text
+    sid = device.post("/api/v1/sessions", json={"site_id": site["id"], "filter": "ekf",
+                                                 "initial": {"x": 4.0, "y": 4.0, "floor": 0}}).json()["id"]
+    batch = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": [{"t": 1.0, "rss": scan}]})
+    assert batch.status_code == 200, batch.text
+    assert "train a new model" in batch.json()["skipped_scans"][0]["reason"]
