@@ -10,6 +10,8 @@ Public entry points::
 scale], ``selfcal``); ``<name>-xy`` is each one's two-state seed form; ``kf`` and ``fkf``
 are linear two-state filters.
 
+    smooth_track(estimates) -> estimates       # RTS smoother over a stored track
+
 Each Tracker has predict(step), update(fix), update_range(beacon_xy, range_m,
 range_std_m, on_wall=None) -> bool, mean, covariance, reset(mean, cov),
 set_walls(walls), inflate(factor), search_region(), to_dict(), from_dict().
@@ -24,6 +26,7 @@ from server.estimation.tracking.kf import KFTracker
 from server.estimation.tracking.landmarks import LandmarkCorrector, Snap, apply_snap
 from server.estimation.tracking.pf import ParticleFilterTracker, ParticleFilterXYTracker
 from server.estimation.tracking.skpf import SKPFTracker, SKPFXYTracker
+from server.estimation.tracking.smoother import smooth_track
 from server.estimation.tracking.ukf import UKFTracker, UKFXYTracker
 
 __all__ = [
@@ -50,4 +53,5 @@ __all__ = [
     "make_crowd_point",
     "find_merge_target",
     "merge_points",
+    "smooth_track",
 ]

@@ -1,0 +1,75 @@
+"""The RTS smoother over a stored track: equal to filterpy's RTS smoother for the two-state
+EKF, and better than the live track on a simulated walk."""
+
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from server.estimation.tracking import make_tracker
+from server.estimation.tracking.motion import step_noise_cov
+from server.estimation.tracking.smoother import smooth_track
+from server.estimation.types import Estimate, Step, step_displacement
+from tests.helpers.simulate import simulate_walk
+
+
+def _track(name: str, walk, floor_change_at: int | None = None):
+    """The track as the server stores it, plus per time index the filtered state, Q and u."""
+    t = make_tracker(name, walk.truth[0], np.eye(2) * 0.5, seed=1, **({"q": 0.01} if name != "kf" else {}))
+    track = [Estimate.of(0.0, t.mean, t.covariance, 0, "init")]
+    filtered, Qs, us = [(t.mean, t.covariance)], [np.zeros((2, 2))], [np.zeros(2)]
+    k = 0
+    for e in walk.events:
+        floor = 1 if floor_change_at is not None and k >= floor_change_at else 0
+        if isinstance(e, Step):
+            k += 1
+            t.predict(e)
+            track.append(Estimate.of(e.t, t.mean, t.covariance, floor, "step"))
+            filtered.append((t.mean, t.covariance))
+            Qs.append(step_noise_cov(e) + 0.01 * np.eye(2))
+            us.append(step_displacement(e.length_m, e.heading_deg))
+        else:
+            t.update(e)
+            track.append(Estimate.of(float(k) + 0.5, t.mean, t.covariance, floor, "scan"))
+            filtered[-1] = (t.mean, t.covariance)
+    return track, filtered, Qs, us
+
+
+def test_equals_filterpy_rts_for_the_two_state_ekf():
+    walk = simulate_walk(seed=3, legs=((0.0, 15), (90.0, 15)))
+    track, filtered, Qs, us = _track("ekf-xy", walk)
+    # filterpy's smoother has no control input: take the known displacements out first.
+    U = np.cumsum(us, axis=0)
+    Xs = np.array([m for m, _ in filtered]) - U
+    Ps = np.array([P for _, P in filtered])
+    xs_ref, Ps_ref, _, _ = KalmanFilter(dim_x=2, dim_z=2).rts_smoother(Xs, Ps, Fs=[np.eye(2)] * len(Xs), Qs=Qs)
+    smoothed = smooth_track(track)
+    assert len(smoothed) == len(track)
+    assert [(e.t, e.source, e.floor) for e in smoothed] == [(e.t, e.source, e.floor) for e in track]
+    last_of_index = {}
+    k = -1
+    for i, e in enumerate(smoothed):
+        k += e.source in ("init", "step")
+        last_of_index[k] = i
+    for k, i in last_of_index.items():
+        np.testing.assert_allclose([smoothed[i].x, smoothed[i].y], xs_ref[k] + U[k], atol=1e-9)
+        np.testing.assert_allclose(np.array(smoothed[i].covariance), Ps_ref[k], atol=1e-9)
+
+
+def test_smoothing_beats_the_live_track_and_a_floor_change_splits_it():
+    walk = simulate_walk(seed=4, legs=((0.0, 30), (90.0, 30)), fix_std_m=2.0)
+    for name in ("ekf", "ekf-xy", "skpf", "kf"):
+        track, *_ = _track(name, walk)
+        smoothed = smooth_track(track)
+        step_idx = [i for i, e in enumerate(track) if e.source == "step"]
+        live = np.array([[track[i].x, track[i].y] for i in step_idx])
+        smooth = np.array([[smoothed[i].x, smoothed[i].y] for i in step_idx])
+        err_live = np.hypot(*(live - walk.truth[1:]).T).mean()
+        err_smooth = np.hypot(*(smooth - walk.truth[1:]).T).mean()
+        assert err_smooth < 0.97 * err_live, (name, err_smooth, err_live)
+    track, *_ = _track("ekf-xy", walk, floor_change_at=30)
+    smoothed = smooth_track(track)
+    cut = next(i for i, e in enumerate(track) if e.floor == 1)
+    # the last estimate before the change is its interval's end: the smoother leaves it as it was
+    assert (smoothed[cut - 1].x, smoothed[cut - 1].y) == (track[cut - 1].x, track[cut - 1].y)
+    assert smooth_track([]) == []
