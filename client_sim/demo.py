@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from .errors import CliError
-from .http_client import LocalizerClient
+from .http_client import ApiError, LocalizerClient
 from .report import markdown_table, write_report
 from .runs import run_survey, run_track, survey_fingerprints
 from .server_process import port_free, start_server, stop_server
@@ -36,14 +36,27 @@ SITE_NAME = "client_sim demo: open room"
 SCANS_PER_HEADING = 3
 
 
+async def _model_loads(api: LocalizerClient, site_id: int) -> bool:
+    """Whether the site's active model still loads: one stored by an older version of the
+    service is refused (409 "train a new model"), and the demo then trains a new one."""
+    transmitters = await api.request("GET", f"/api/v1/sites/{site_id}/transmitters")
+    try:
+        await api.locate(site_id, {t["id"]: -60.0 for t in transmitters[:3]})
+    except ApiError as exc:
+        return not (exc.status == 409 and "train a new model" in str(exc))
+    return True
+
+
 async def demo_site(url: str, admin_key: str, seed: int) -> dict:
     """The site named :data:`SITE_NAME` with its active model, surveyed and trained only if need be."""
     async with LocalizerClient(url, admin_key, key_name="admin key") as api:
         site = next((s for s in await api.list_sites() if s["name"] == SITE_NAME), None)
         if site is not None and site["fingerprints"]["survey"]:
             model = next((m for m in await api.list_models(site["id"]) if m.get("active")), None)
-            if model is None:
+            if model is None or not await _model_loads(api, site["id"]):
                 model = await api.wait_model(site["id"], (await api.train_model(site["id"], "knn"))["id"])
+                if model.get("status") == "ready" and not model.get("active"):
+                    model = await api.activate_model(site["id"], model["id"])
             return {"site_id": site["id"], "reused": True, "accepted": site["fingerprints"]["survey"],
                     "reference_points": site["reference_points"], "model": model}
     survey = await run_survey(url, admin_key, SCENARIO, scans_per_heading=SCANS_PER_HEADING, seed=seed, train="knn",

@@ -174,3 +174,27 @@ def test_demo_reuses_its_site_and_prints_commands_that_work_as_written(tmp_path)
     finally:
         serving.terminate()
         assert serving.wait(timeout=60) == 0
+
+
+def test_the_demo_trains_a_new_model_when_its_sites_model_no_longer_loads(admin, live_server, clean_db):
+    """A localizer.db from an older version keeps a model artifact the service now refuses:
+    the demo then trains (and activates) a new model instead of tracking without fixes."""
+    import hashlib
+
+    from sqlalchemy import create_engine, update
+
+    from client_sim.demo import demo_site
+    from server.tables import ModelArtifact
+
+    first = asyncio.run(demo_site(live_server.url, ADMIN_KEY, seed=1))
+    assert not first["reused"] and first["model"]["status"] == "ready"
+    blob = b"\x80\x04\x95an old pickle"
+    engine = create_engine(clean_db)
+    with engine.begin() as conn:
+        conn.execute(update(ModelArtifact).values(blob=blob, sha256=hashlib.sha256(blob).hexdigest()))
+    engine.dispose()
+    again = asyncio.run(demo_site(live_server.url, ADMIN_KEY, seed=1))
+    assert again["reused"] and again["model"]["id"] != first["model"]["id"]
+    assert again["model"]["status"] == "ready" and again["model"]["active"]
+    unchanged = asyncio.run(demo_site(live_server.url, ADMIN_KEY, seed=1))
+    assert unchanged["model"]["id"] == again["model"]["id"]
