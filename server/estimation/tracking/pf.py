@@ -216,6 +216,10 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         self.particles = np.column_stack((xy, cal))
         self.weights = np.full(n, 1.0 / n)
 
+    def inflate(self, factor: float) -> None:
+        super().inflate(factor)
+        self.particles[:, 3] = np.clip(self.particles[:, 3], *selfcal.SCALE_RANGE)
+
     @property
     def state_mean(self) -> np.ndarray:
         return self.weights @ self.particles
