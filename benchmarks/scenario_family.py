@@ -152,7 +152,7 @@ class World:
                                 for k, (x, y), r0, g in zip(self.tx_ids, self.tx_xy, self.r0, self.gamma, strict=True)
                                 if k.startswith("ble:")})
 
-    def model(self):
+    def model(self, algorithm: str = "knn"):
         rng = np.random.default_rng(self.sc.seed + 2)
         rows = []
         for u in np.arange(0.0, 2 * (self.sc.width_m + self.sc.height_m), 2.0):
@@ -161,7 +161,7 @@ class World:
             keys = set().union(*scans)
             rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
                          "rss": {k: float(np.mean([s.get(k, -100.0) for s in scans])) for k in keys}})
-        return make_model("knn", {}, use_heading=False, kinds=None).fit(FingerprintSet.from_rows(rows))
+        return make_model(algorithm, {}, use_heading=False, kinds=None).fit(FingerprintSet.from_rows(rows))
 
 
 @dataclass
@@ -222,6 +222,8 @@ class GaussianFixes:
 
 
 # --------------------------------------------------------------------------- running
+#: the fingerprint model of the ``knn`` fixes (``--algorithm``)
+ALGORITHM = ["knn"]
 #: tracker keyword arguments per filter name (``--set``)
 PARAMS: dict[str, dict] = {}
 
@@ -268,7 +270,7 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
         fp = [float(np.hypot(*(fixes.by_t[s.t] - p))) for s, p in zip(w.scans, w.scan_truth, strict=True)]
         site = SiteMap()
     else:
-        fixes = ModelFixes(world.model(), cov_scale)
+        fixes = ModelFixes(world.model(ALGORITHM[0]), cov_scale)
         fp = []
         for s, p in zip(w.scans, w.scan_truth, strict=True):
             try:
@@ -342,11 +344,13 @@ def main() -> int:
     ap.add_argument("--cov-scale", type=float, default=None,
                     help="multiply the KNN covariance by this (default: fitted on 12 tune scenarios so the "
                          "fixes' mean NIS against the truth is 2)")
+    ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
     ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
     filters = [f for f in a.filters.split(",") if f]
+    ALGORITHM[0] = a.algorithm
     for item in a.set:
         key, value = item.split("=", 1)
         flt, param = key.split(".", 1)
