@@ -283,6 +283,12 @@ class EstimateOut(BaseModel):
         description="What made it: a PDR step, a scan's fix, or the session's initial position.")
 
 
+class TrackEstimateOut(EstimateOut):
+    fix_refused: bool | None = Field(
+        None, description="Extension, present (true) only on a `scan` estimate whose fingerprint fix the "
+        "innovation gate refused (the batch's `rejected_fixes`); absent otherwise.")
+
+
 class SkippedScan(BaseModel):
     index: int = Field(description="Index of the scan in the batch's `scans`.")
     reason: str

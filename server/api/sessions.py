@@ -11,7 +11,15 @@ from server.api.deps import Device, Sessions
 from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.domain import BatchAnswer, SessionInfo
 from server.estimation.types import Estimate, Scan, Step
-from server.schemas import BatchIn, BatchResult, EstimateOut, SessionIn, SessionOut, SkippedScan
+from server.schemas import (
+    BatchIn,
+    BatchResult,
+    EstimateOut,
+    SessionIn,
+    SessionOut,
+    SkippedScan,
+    TrackEstimateOut,
+)
 from server.services.sessions import InitialPosition
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
@@ -70,9 +78,22 @@ def get_session(session_id: str, sessions: Sessions, principal: Device) -> Sessi
     return session_out(sessions.get(principal, session_id))
 
 
-@router.get("/{session_id}/track", response_model=list[EstimateOut], responses=_NOT_YOURS)
-def get_track(session_id: str, sessions: Sessions, principal: Device) -> list[EstimateOut]:
-    return [estimate_out(e) for e in sessions.track(principal, session_id)]
+@router.get("/{session_id}/track", response_model=list[TrackEstimateOut], response_model_exclude_unset=True,
+            responses=_NOT_YOURS)
+def get_track(
+    session_id: str,
+    sessions: Sessions,
+    principal: Device,
+    smoothed: Annotated[bool, Query(description=(
+        "Extension. true: the track after a fixed-interval Rauch–Tung–Striebel smoother over the stored "
+        "estimates (same length, times, floors and sources; each position uses the fixes after it too) — "
+        "the best after-the-fact path, for replay and analytics. false (default): the live track as "
+        "estimated."))] = False,
+) -> list[TrackEstimateOut]:
+    """The session's track, oldest first. A `scan` estimate whose fix the innovation gate refused
+    carries the extension `fix_refused: true`."""
+    track, refused = sessions.track_marked(principal, session_id, smoothed)
+    return [track_estimate_out(e, i in refused) for i, e in enumerate(track)]
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_NOT_YOURS)
@@ -84,6 +105,15 @@ def close_session(session_id: str, sessions: Sessions, principal: Device) -> Res
 def estimate_out(e: Estimate) -> EstimateOut:
     return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
                        source=e.source)
+
+
+def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:
+    """Every field set but ``fix_refused``, which is set only when true (the route leaves out unset fields)."""
+    out = TrackEstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
+                           source=e.source)
+    if refused:
+        out.fix_refused = True
+    return out
 
 
 def session_out(info: SessionInfo) -> SessionOut:

@@ -28,6 +28,7 @@ from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedSta
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
+from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
@@ -116,10 +117,19 @@ class SessionService:
         with self.db.transaction() as s:
             return _visible(store.get_session(s, session_id), principal, session_id)
 
-    def track(self, principal: Principal, session_id: str) -> list[Estimate]:
+    def track(self, principal: Principal, session_id: str, smoothed: bool = False) -> list[Estimate]:
+        """The stored track, oldest first; ``smoothed``: its fixed-interval (RTS) smoothing
+        (``server.estimation.tracking.smoother``: same length, times, floors and sources)."""
+        return self.track_marked(principal, session_id, smoothed)[0]
+
+    def track_marked(self, principal: Principal, session_id: str, smoothed: bool = False) -> tuple[list[Estimate], set[int]]:
+        """The track (smoothed or not) and the indexes of its scan estimates whose fix the
+        innovation gate refused (from the stored batch answers)."""
         with self.db.transaction() as s:
             _visible(store.get_session(s, session_id), principal, session_id)
-            return store.track(s, session_id)
+            track = store.track(s, session_id)
+            refused = store.refused_fix_indexes(s, session_id)
+        return (smooth_track(track) if smoothed else track), refused
 
     def track_after(
         self, principal: Principal, session_id: str, after_idx: int, limit: int = 500

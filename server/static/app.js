@@ -241,6 +241,7 @@ function drawCoverage(svg, b) {
 }
 $("show-rps").addEventListener("change", (e) => $("map").classList.toggle("hide-rps", !e.target.checked));
 $("show-tx").addEventListener("change", (e) => $("map").classList.toggle("hide-tx", !e.target.checked));
+$("show-smoothed").addEventListener("change", () => drawSessions());
 
 // The map's extent in metres: the floors' declared size, walls, reference points, transmitters, tracks.
 function computeBounds() {
@@ -254,7 +255,7 @@ function computeBounds() {
     for (const r of S.rps) add(r.x, r.y);
     for (const t of S.txs) add(t.x, t.y);
   }
-  for (const tr of S.tracks.values()) for (const p of tr.pts) add(p.x, p.y);
+  for (const tr of S.tracks.values()) for (const p of [...tr.pts, ...(tr.smooth || [])]) add(p.x, p.y);
   if (!xs.length) { add(0, 0); add(20, 20); }
   let [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
   const pad = Math.max(1, 0.05 * Math.max(x1 - x0, y1 - y0));
@@ -353,7 +354,22 @@ function drawSessions() {
     const pts = S.scope === "admin" ? tr.pts.filter((p) => p.floor === S.floor) : tr.pts;
     if (!pts.length) continue;
     const g = el("g", { class: `session ${tr.status}`, "data-session": sid }, layer);
-    el("polyline", { points: pts.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track", stroke: tr.color }, g);
+    if (tr.smooth && $("show-smoothed").checked) {
+      // the smoothed track (GET …/track?smoothed=true), replayed at the same pace as the live one
+      const sm = tr.smooth.slice(0, tr.pts.length).filter((p) => S.scope !== "admin" || p.floor === S.floor);
+      if (sm.length) {
+        const line = el("polyline", { points: sm.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track smoothed", stroke: tr.color, "data-session": sid }, g);
+        el("title", {}, line).textContent = `session ${sid.slice(0, 8)} · smoothed (RTS) track`;
+      }
+    }
+    el("polyline", { points: pts.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track live", stroke: tr.color }, g);
+    const m = b.size / 120;
+    for (const p of pts) {
+      if (!(p.fix_refused || (tr.refused && tr.refused.has(p.idx)))) continue;
+      // a scan whose fix the innovation gate refused: a cross at the estimate it left
+      const mark = el("path", { d: `M${X(p.x) - m},${Y(p.y) - m}L${X(p.x) + m},${Y(p.y) + m}M${X(p.x) - m},${Y(p.y) + m}L${X(p.x) + m},${Y(p.y) - m}`, class: "refused", "data-session": sid, "data-idx": p.idx }, g);
+      el("title", {}, mark).textContent = `session ${sid.slice(0, 8)} · #${p.idx} · fix refused by the innovation gate`;
+    }
     const last = pts[pts.length - 1];
     if (last.covariance) {
       const e = ellipse(last.covariance);
@@ -450,12 +466,18 @@ async function showSession(s) {
       $("floor").value = String(S.floor);
       drawMap();
     }
+    // the live stream does not say which fixes were refused: the stored track does (once, on selection)
+    const stored = await api(`/api/v1/sessions/${s.id}/track`);
+    trackOf(s.id).refused = new Set(stored.flatMap((e, i) => (e.fix_refused ? [i] : [])));
+    scheduleDraw();
     return;
   }
-  // replay a closed session: its stored track, drawn over a few seconds
-  const track = await api(`/api/v1/sessions/${s.id}/track`);
+  // replay a closed session: its stored track and its smoothed track, drawn over a few seconds
+  const [track, smooth] = await Promise.all([
+    api(`/api/v1/sessions/${s.id}/track`), api(`/api/v1/sessions/${s.id}/track?smoothed=true`),
+  ]);
   if (S.replayTimer) clearInterval(S.replayTimer);
-  const tr = { pts: [], color: colorOf(s.id), status: "closed" };
+  const tr = { pts: [], smooth, color: colorOf(s.id), status: "closed" };
   S.tracks.set(s.id, tr);
   if (track.length && S.scope === "admin") { S.floor = track[0].floor; $("floor").value = String(S.floor); }
   S.bounds = null;

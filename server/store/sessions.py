@@ -153,6 +153,46 @@ def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> 
             for idx, t, x, y, floor, c, source in tuples(rows)]
 
 
+def refused_fix_indexes(s: Session, session_id: str) -> set[int]:
+    """Track indexes of the scan estimates whose fingerprint fix the innovation gate refused,
+    from the stored batch answers (``rejected_fixes`` names scan indexes of a batch) and the
+    estimates' batch seq; no column of its own.
+
+    A batch's scans are applied in time order and each applied scan leaves one ``scan``
+    estimate; the batch's applied scans are its scan indexes minus ``skipped_scans``, and
+    the k-th of them (by index) is matched to the batch's k-th scan estimate. That is exact
+    when a batch lists its scans in time order (as a phone sends them); a batch whose scans
+    were sent out of time order may have its marks on the wrong scans of that batch."""
+    refusing: dict[int, dict] = {}
+    for seq, answer in tuples(s.execute(select(_BATCHES.c.seq, _BATCHES.c.answer)
+                                        .where(_BATCHES.c.session_id == session_id))):
+        if answer and answer.get("rejected_fixes"):
+            refusing[seq] = answer
+    if not refusing:
+        return set()
+    rows = tuples(s.execute(
+        select(_ESTIMATES.c.idx, _ESTIMATES.c.seq)
+        .where(_ESTIMATES.c.session_id == session_id, _ESTIMATES.c.seq.in_(list(refusing)),
+               _ESTIMATES.c.source == "scan")
+        .order_by(_ESTIMATES.c.idx)
+    ))
+    scan_rows: dict[int, list[int]] = {}
+    for idx, seq in rows:
+        scan_rows.setdefault(seq, []).append(idx)
+    out: set[int] = set()
+    for seq, answer in refusing.items():
+        skipped = {n["index"] for n in answer.get("skipped_scans", [])}
+        total = int(answer.get("applied_scans", 0)) + len(skipped)
+        applied = [i for i in range(total) if i not in skipped]
+        position = {scan: k for k, scan in enumerate(applied)}
+        idxs = scan_rows.get(seq, [])
+        for note in answer["rejected_fixes"]:
+            k = position.get(note["index"])
+            if k is not None and k < len(idxs):
+                out.add(idxs[k])
+    return out
+
+
 def open_sessions_of_site(s: Session, site_id: int) -> dict[str, int]:
     """session id → track length of every open session on the site."""
     rows = s.execute(

@@ -111,6 +111,13 @@ def test_dashboard_map_and_live_session(page, live_server, site, device):
     page.click(f"#sessions li[data-session='{sid}']")
     page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
     assert position(page, sid) == pytest.approx((x1, y1))
+    # beside the live track, the smoothed one (a toggle)
+    smoothed = page.locator(f"polyline.track.smoothed[data-session='{sid}']")
+    assert smoothed.count() == 1 and len(smoothed.get_attribute("points").split()) == 5
+    page.uncheck("#show-smoothed")
+    assert smoothed.count() == 0 and page.locator(f"g.session[data-session='{sid}'] polyline.live").count() == 1
+    page.check("#show-smoothed")
+    assert smoothed.count() == 1
 
     shot = os.environ.get("LOCALIZER_DASHBOARD_SCREENSHOT")
     if shot:
@@ -159,3 +166,40 @@ def test_docs_render_offline(page, live_server, path):
     assert "Localizer" in page.content()
     outside = [u for u in requests if not u.startswith((live_server.url, "data:", "blob:"))]
     assert requests and not outside, outside
+
+
+def test_replay_draws_the_smoothed_track_and_marks_refused_fixes(page, live_server, site, device):
+    """A walk east with a fix every 2 steps (scripted fingerprint service), one of them 9 m off:
+    the replay draws the smoothed path beside the live one and a cross at the refused fix."""
+    from server.api.deps import session_service
+    from server.services.sessions import SessionService
+    from tests.api.test_sessions_smoothed import ScriptedPositioning
+
+    fake = ScriptedPositioning(var=0.5)
+    app = live_server.app
+    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
+    try:
+        body = {"site_id": site, "filter": "kf", "initial": {"x": 2.0, "y": 5.0, "floor": 0}}
+        sid = device.post("/api/v1/sessions", json=body).json()["id"]
+        steps, scans = [], []
+        for i in range(16):
+            steps.append({"t": 0.5 * (i + 1), "length_m": 0.75, "heading_deg": 85.0})
+            if i % 2 == 1:
+                off = 9.0 if len(scans) == 4 else 0.0
+                fake.fixes.append((2.0 + 0.7 * (i + 1), 5.0 + off))
+                scans.append({"t": 0.5 * (i + 1) + 0.25, "rss": {"wifi:aa:bb:cc:dd:ee:01": -50.0}})
+        answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "steps": steps, "scans": scans})
+        assert [f["index"] for f in answer.json()["rejected_fixes"]] == [4]
+        device.delete(f"/api/v1/sessions/{sid}")
+    finally:
+        app.dependency_overrides.pop(session_service)
+    login(page, live_server.url, ADMIN_KEY)
+    page.click(f"#sessions li[data-session='{sid}']")
+    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    live = page.locator(f"g.session[data-session='{sid}'] polyline.live").get_attribute("points")
+    smoothed = page.locator(f"polyline.track.smoothed[data-session='{sid}']").get_attribute("points")
+    assert len(smoothed.split()) == len(live.split()) == 1 + 16 + 8 and smoothed != live
+    marks = page.locator(f"path.refused[data-session='{sid}']")
+    assert marks.count() == 1 and marks.get_attribute("data-idx") == str(1 + 10 + 4)  # init, 10 steps, 5th scan
+    assert page.locator("#legend").text_content().count("smoothed track") == 1
+    assert page.errors == []

@@ -16,6 +16,12 @@ This is the exact RTS smoother of the two-state Kalman filters (``kf``, ``fkf``,
 filters, the smoother of their position marginal (the coupling through the heading bias is
 left out). Every estimate of index k gets the smoothed state of k; a floor change starts a
 new interval. Nothing here needs the tracker: it runs on what the server stores.
+
+So it needs neither the filter's kind nor the steps and fixes themselves: the process noise
+of step k is read off the stored covariances, Q_k = P_{k+1|k} − P_{k|k} (the growth from the
+filtered estimate to the next step's prediction), and each fix enters through the scan
+estimate it produced. A refused fix left its scan estimate equal to the prediction, so it
+moves nothing here either. ``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
 """
 
 from __future__ import annotations

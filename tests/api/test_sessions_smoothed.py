@@ -1,0 +1,137 @@
+"""The smoothed track (`GET /api/v1/sessions/{id}/track?smoothed=true`) and the refused fixes
+marked on a track (`fix_refused`), over real HTTP with a scripted fingerprint service."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import deque
+
+import numpy as np
+import pytest
+
+from server.api.deps import session_service
+from server.errors import Invalid
+from server.estimation.types import Fix
+from server.schemas import EstimateOut
+from server.services.sessions import SessionService
+from tests.api.test_sessions import FLOORS, TRANSMITTERS, Located
+
+STEP_S, LENGTH_M, N_STEPS, SCAN_EVERY = 0.5, 0.7, 60, 4
+
+
+class ScriptedPositioning:
+    """The fingerprint service as a script: each fix asked for is the next one queued (a
+    session with `initial` asks once per scan, in time order)."""
+
+    def __init__(self, var: float = 1.0):
+        self.var, self.fixes = var, deque()
+
+    def locate(self, site_id, rss, heading_deg=None, model_id=None, near=None, radius_m=None, serving=None):
+        if not self.fixes:
+            raise Invalid("no fix scripted")
+        x, y = self.fixes.popleft()
+        return Located(Fix(float(x), float(y), 0, np.eye(2) * self.var), model_id, "scripted")
+
+
+@pytest.fixture
+def scripted(live_server):
+    fake = ScriptedPositioning()
+    app = live_server.app
+    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
+    yield fake
+    app.dependency_overrides.pop(session_service)
+
+
+@pytest.fixture
+def site(admin) -> int:
+    answer = admin.post("/api/v1/sites", json={"name": "lab", "floors": FLOORS, "transmitters": TRANSMITTERS})
+    assert answer.status_code == 201, answer.text
+    return answer.json()["id"]
+
+
+def _walk(device, site, scripted, outlier_at: int | None = None) -> tuple[str, dict[float, tuple[float, float]]]:
+    """A walk east from (1, 2) along y = 2 whose steps say 8° left of the truth and 10 % long
+    (PDR drift), with a fix (σ 1 m) every 4 steps; returns the session id and the truth at each
+    input time."""
+    rng = np.random.default_rng(7)
+    sid = device.post("/api/v1/sessions", json={"site_id": site, "filter": "kf",
+                                                "initial": {"x": 1.0, "y": 2.0, "floor": 0}}).json()["id"]
+    truth = {0.0: (1.0, 2.0)}
+    steps, scans = [], []
+    for i in range(N_STEPS):
+        t = STEP_S * (i + 1)
+        x = 1.0 + LENGTH_M * (i + 1)
+        truth[t] = (x, 2.0)
+        steps.append({"t": t, "length_m": LENGTH_M * 1.1 + rng.normal(0, 0.03),
+                      "heading_deg": 90.0 - 8.0 + rng.normal(0, 2.0)})
+        if (i + 1) % SCAN_EVERY == 0:
+            ts = t + STEP_S / 2
+            truth[ts] = (x, 2.0)
+            n = len(scans)
+            fx, fy = (x, 2.0 + 15.0) if n == outlier_at else (x + rng.normal(0, 1.0), 2.0 + rng.normal(0, 1.0))
+            scripted.fixes.append((fx, fy))
+            scans.append({"t": ts, "rss": {"wifi:ap1": -50.0}})
+    half = len(steps) // 2
+    cut = steps[half]["t"]
+    for seq, (st, sc) in enumerate([(steps[:half], [s for s in scans if s["t"] < cut]),
+                                    (steps[half:], [s for s in scans if s["t"] >= cut])]):
+        answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": seq, "steps": st, "scans": sc})
+        assert answer.status_code == 200, answer.text
+    return sid, truth
+
+
+def _mean_error(track: list[dict], truth: dict[float, tuple[float, float]]) -> float:
+    return float(np.mean([math.dist((e["x"], e["y"]), truth[e["t"]]) for e in track]))
+
+
+def test_the_smoothed_track_has_the_live_tracks_shape_and_is_no_worse(device, site, scripted):
+    sid, truth = _walk(device, site, scripted)
+    raw = device.get(f"/api/v1/sessions/{sid}/track")
+    live = raw.json()
+    # the default answer is byte for byte what it was before the extension
+    before = [EstimateOut.model_validate(e).model_dump(mode="json") for e in live]
+    assert raw.content == json.dumps(before, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
+    assert device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "false"}).json() == live
+    answer = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"})
+    assert answer.status_code == 200, answer.text
+    smoothed = answer.json()
+    assert len(smoothed) == len(live) == 1 + N_STEPS + N_STEPS // SCAN_EVERY
+    for key in ("t", "floor", "source"):
+        assert [e[key] for e in smoothed] == [e[key] for e in live]
+    # no refused fix on this walk: the live answer is as before the extension (no new key)
+    assert all(set(e) == {"t", "x", "y", "floor", "covariance", "source"} for e in live + smoothed)
+    live_err, smooth_err = _mean_error(live, truth), _mean_error(smoothed, truth)
+    print(f'mean error: live {live_err:.2f} m, smoothed {smooth_err:.2f} m')
+    assert smooth_err <= live_err, (smooth_err, live_err)
+    # smoothing uses later fixes too: the smoothed covariance is never wider than the live one
+    for a, b in zip(live, smoothed, strict=True):
+        assert np.trace(b["covariance"]) <= np.trace(a["covariance"]) + 1e-9
+
+
+def test_a_closed_sessions_smoothed_track_can_be_read_and_others_cannot(device, admin, site, scripted):
+    sid, _ = _walk(device, site, scripted)
+    assert device.delete(f"/api/v1/sessions/{sid}").status_code == 204
+    smoothed = device.get(f"/api/v1/sessions/{sid}/track?smoothed=true")
+    assert smoothed.status_code == 200 and len(smoothed.json()) == 1 + N_STEPS + N_STEPS // SCAN_EVERY
+    assert admin.get(f"/api/v1/sessions/{sid}/track?smoothed=true").json() == smoothed.json()
+    assert device.get("/api/v1/sessions/nope/track?smoothed=true").status_code == 404
+    assert device.get(f"/api/v1/sessions/{sid}/track?smoothed=maybe").status_code == 422
+
+
+def test_a_refused_fix_is_marked_on_the_track(device, site, scripted):
+    sid, _ = _walk(device, site, scripted, outlier_at=9)
+    track = device.get(f"/api/v1/sessions/{sid}/track").json()
+    marked = [i for i, e in enumerate(track) if "fix_refused" in e]
+    scan_idx = [i for i, e in enumerate(track) if e["source"] == "scan"]
+    assert marked == [scan_idx[9]] and track[marked[0]]["fix_refused"] is True
+    smoothed = device.get(f"/api/v1/sessions/{sid}/track?smoothed=true").json()
+    assert [i for i, e in enumerate(smoothed) if e.get("fix_refused")] == marked
+
+
+def test_the_openapi_schema_documents_the_parameter_and_the_field(anonymous):
+    schema = anonymous.get("/openapi.json").json()
+    params = schema["paths"]["/api/v1/sessions/{session_id}/track"]["get"]["parameters"]
+    smoothed = next(p for p in params if p["name"] == "smoothed")
+    assert smoothed["in"] == "query" and "smoother" in smoothed["description"] and smoothed["schema"]["default"] is False
+    assert "fix_refused" in schema["components"]["schemas"]["TrackEstimateOut"]["properties"]
