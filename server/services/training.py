@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 #: process group while it is still importing cannot make it look like a failed job.
 _STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
 
+#: How long a worker waits for a stop after its training child died, before calling the job failed.
+STOP_GRACE_S = 5.0
+
 #: Below this many fingerprints a held-out split says nothing; the model is fitted without metrics.
 MIN_FINGERPRINTS_FOR_VALIDATION = 20
 
@@ -187,6 +190,10 @@ class TrainingWorker:
             child.terminate()
             child.join()
         stopped = self._stop.is_set() or child.exitcode in (-signal.SIGTERM, -signal.SIGINT)
+        if child.exitcode != 0 and not stopped:
+            # A signal to the whole process group may end the child a moment before the server
+            # stops this worker: a job is failed only if no stop follows its child's death.
+            stopped = self._stop.wait(STOP_GRACE_S)
         if child.exitcode != 0:
             # compare-and-set from "training": a job the child finished keeps its outcome
             with self._db.transaction() as s:
