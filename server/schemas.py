@@ -237,7 +237,10 @@ class InitialIn(Strict):
 
 class SessionIn(Strict):
     site_id: DbId
-    filter: str = Field(description="The tracker to run (see docs/api-conventions.md).",
+    filter: str = Field(description="The tracker to run: `ekf`, `ukf`, `pf`, `skpf` (self-calibrating: they "
+                        "learn a heading bias and a step-length scale from the fixes), their seed forms `ekf-xy`, "
+                        "`ukf-xy`, `pf-xy`, `skpf-xy` (position only), or the linear two-state `kf` and `fkf` "
+                        "(see docs/api-conventions.md).",
                         json_schema_extra=_FILTER_ENUM)
     model_id: DbId | None = None
     initial: InitialIn | None = None

@@ -20,8 +20,8 @@ new interval. Nothing here needs the tracker: it runs on what the server stores.
 So it needs neither the filter's kind nor the steps and fixes themselves: the process noise
 of step k is read off the stored covariances, Q_k = P_{k+1|k} − P_{k|k} (the growth from the
 filtered estimate to the next step's prediction), and each fix enters through the scan
-estimate it produced. A refused fix left its scan estimate equal to the prediction, so it
-moves nothing here either. ``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
+estimate it produced (a refused fix moved nothing there, so it moves nothing here either).
+``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
 """
 
 from __future__ import annotations
