@@ -169,13 +169,14 @@ class Fingerprint(Base):
 class Model(Base):
     """A trained (or training) fingerprint model of a site; the artifact lives apart.
 
-    At most one model per site is active (a partial unique index enforces it).
+    At most one model per site is active (a partial unique index enforces it); ids are never reused.
     """
 
     __tablename__ = "models"
     __table_args__ = (
         Index("uq_models_one_active", "site_id", unique=True, sqlite_where=text("active"),
               postgresql_where=text("active")),
+        {"sqlite_autoincrement": True},  # SQLite: a deleted model's id is never given to another (0007)
     )
     id: Mapped[int] = mapped_column(primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)

@@ -70,3 +70,64 @@ def test_sqlite_site_ids_become_autoincrement_without_losing_any_sites_data(tmp_
         assert models.get_model(s, 2, model_id) is None  # the delete still cascades
         assert sites.add_site(s, NewSite(name="c")).id == 3  # not 2 again
     db.dispose()
+
+
+def test_sqlite_model_ids_become_autoincrement_without_losing_any_models_data(tmp_path):
+    """The rebuild of ``models`` (0007) keeps every model, its artifact, the sessions pointing at
+    it and the partial unique index (one active model per site); it cascades nothing (foreign keys
+    off while it runs), and afterwards a deleted model's id is never given to a new model."""
+    import pytest
+    from sqlalchemy.exc import IntegrityError
+
+    from server.db import Database
+    from server.domain import ModelSpec
+    from server.store import models
+
+    url = f"sqlite:///{tmp_path / 'models.db'}"
+    migrate.upgrade(url, "0006_sites_autoincrement")
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("INSERT INTO sites (id, name, settings, created_at, revision) "
+                             "VALUES (1, 'a', '{}', '2026-01-01', 'r')")
+        for model_id, status, active in ((1, "ready", 1), (2, "failed", 0), (3, "queued", 0)):
+            conn.exec_driver_sql(
+                "INSERT INTO models (id, site_id, algorithm, params, use_heading, kinds, include_crowd, status, "
+                "active, trained_on, created_at, updated_at) "
+                f"VALUES ({model_id}, 1, 'knn', '{{}}', 0, '[]', 1, '{status}', {active}, 5, '2026-01-01', '2026-01-01')")
+        conn.exec_driver_sql("INSERT INTO model_artifacts (model_id, sha256, blob) VALUES (1, 'abc', x'00ff')")
+        conn.exec_driver_sql("INSERT INTO tracking_sessions (id, site_id, owner_key, filter, model_id, status, "
+                             "last_seq, created_at, track_length) VALUES ('s1', 1, 'k', 'kf', 1, 'open', -1, "
+                             "'2026-01-01', 0)")
+    engine.dispose()
+    before = _rows(url, "models", "model_artifacts", "tracking_sessions")
+
+    migrate.upgrade(url)
+    assert _rows(url, "models", "model_artifacts", "tracking_sessions") == before
+    db = Database(url)
+    with db.engine.begin() as conn:
+        assert "AUTOINCREMENT" in conn.exec_driver_sql("SELECT sql FROM sqlite_master WHERE name = 'models'").scalar()
+        assert "WHERE active" in conn.exec_driver_sql(
+            "SELECT sql FROM sqlite_master WHERE name = 'uq_models_one_active'").scalar()
+        assert conn.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        with pytest.raises(IntegrityError), conn.begin_nested():  # still one active model per site
+            conn.exec_driver_sql("UPDATE models SET active = 1 WHERE id = 2")
+        conn.exec_driver_sql("DELETE FROM models WHERE id = 3")
+    with db.transaction() as s:
+        assert models.add_model(s, 1, ModelSpec("knn", {})).id == 4  # not 3 again
+        conn = s.connection()
+        conn.exec_driver_sql("DELETE FROM models WHERE id = 1")  # deletes still cascade and set null
+        assert conn.exec_driver_sql("SELECT count(*) FROM model_artifacts").scalar() == 0
+        assert conn.exec_driver_sql("SELECT model_id FROM tracking_sessions").scalar() is None
+    db.dispose()
+
+    migrate.downgrade(url, "0006_sites_autoincrement")  # and back: the rebuild keeps the rows again
+    after = _rows(url, "models", "model_artifacts", "tracking_sessions")
+    assert [r[0] for r in after["models"]] == [2, 4]
+
+
+def _rows(url: str, *tables: str) -> dict[str, list[tuple]]:
+    engine = create_engine(url)
+    with engine.connect() as conn:
+        rows = {t: [tuple(r) for r in conn.exec_driver_sql(f"SELECT * FROM {t} ORDER BY 1").all()] for t in tables}
+    engine.dispose()
+    return rows
