@@ -67,7 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         docs_url=None,  # served offline by server.api.dashboard
         redoc_url=None,
     )
-    db = Database(settings.database_url)
+    db = Database(settings.database_url, busy_timeout_s=settings.sqlite_busy_timeout_s)
     app.state.settings = settings
     app.state.db = db
     app.state.auth = Authenticator(settings, db)

@@ -45,6 +45,9 @@ class Settings(BaseSettings):
         "workers beat every sixth of it."
     )
     model_cache_size: int = Field(8, gt=0, description="Trained models kept loaded per process.")
+    sqlite_busy_timeout_s: float = Field(
+        5.0, gt=0, description="SQLite: a request that waits this long for the database's write lock (another "
+        "writer holds it) is 503 with Retry-After, nothing stored; training and migrations wait 30 s.")
 
     _split = field_validator("admin_keys", "device_keys", mode="before")(_split_keys)
 

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+import sqlite3
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
 from types import ModuleType
 
 import orjson
 from sqlalchemy import Connection, Engine, create_engine, event, make_url
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 fcntl: ModuleType | None
@@ -26,23 +29,39 @@ def _json_dumps(value) -> str:
     return orjson.dumps(value, option=orjson.OPT_NON_STR_KEYS | orjson.OPT_SERIALIZE_NUMPY).decode()
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for ``url``; SQLite connections are configured for concurrent use."""
+#: seconds a SQLite connection waits for another writer's lock unless told otherwise (migrations,
+#: training, the command line); the server's requests wait ``Settings.sqlite_busy_timeout_s``
+BUSY_TIMEOUT_S = 30.0
+
+
+def make_engine(url: str, busy_timeout_s: float = BUSY_TIMEOUT_S) -> Engine:
+    """An engine for ``url``; SQLite connections are configured for concurrent use and wait
+    ``busy_timeout_s`` for a lock another connection holds before "database is locked"."""
     json_codec = {"json_serializer": _json_dumps, "json_deserializer": orjson.loads}
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, **json_codec)
-        event.listen(engine, "connect", _sqlite_pragmas)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": busy_timeout_s}, **json_codec)
+        busy_ms = max(1, round(busy_timeout_s * 1000))
+
+        def _pragmas(dbapi_connection, _record) -> None:
+            _sqlite_pragmas(dbapi_connection, busy_ms)
+
+        event.listen(engine, "connect", _pragmas)
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20, **json_codec)
 
 
-def _sqlite_pragmas(dbapi_connection, _record) -> None:
+def _sqlite_pragmas(dbapi_connection, busy_ms: int) -> None:
     cursor = dbapi_connection.cursor()
+    cursor.execute(f"PRAGMA busy_timeout={int(busy_ms)}")  # first: WAL mode itself may wait on a lock
     cursor.execute("PRAGMA journal_mode=WAL")
     cursor.execute("PRAGMA foreign_keys=ON")
     cursor.execute("PRAGMA synchronous=NORMAL")
-    cursor.execute("PRAGMA busy_timeout=30000")
     cursor.close()
+
+
+def _locked(what: str) -> OperationalError:
+    """The error SQLite itself gives a writer that waited too long (the server answers it 503)."""
+    return OperationalError(what, None, sqlite3.OperationalError("database is locked"))
 
 
 class SqliteWriteLock:
@@ -52,24 +71,50 @@ class SqliteWriteLock:
     handler, which sleeps 1, 2, 5, 10 … 100 ms between tries: under load the lock is
     often free while every writer sleeps. Here the threads of a process queue on a Python
     lock and the processes on an ``flock`` of ``<database>-writelock`` (beside SQLite's own
-    ``-wal`` and ``-shm``), and both wake the next writer the moment the last one is done."""
+    ``-wal`` and ``-shm``), and both wake the next writer the moment the last one is done.
 
-    def __init__(self, path: str | None):
+    ``timeout_s``: a writer that cannot have the lock within it gets SQLite's own "database is
+    locked" ``OperationalError`` (the server answers 503 with ``Retry-After``) instead of waiting
+    in line behind a writer that is itself stuck. Threads still wait on the Python lock (woken
+    the moment it is free); the file lock is then tried without blocking, at most a few
+    milliseconds apart. ``None``: wait as long as it takes."""
+
+    def __init__(self, path: str | None, timeout_s: float | None = None):
+        self.timeout_s = timeout_s
         self._threads = threading.Lock()
         usable = fcntl is not None and path and path != ":memory:" and not path.startswith("file:")
         self._path = f"{path}-writelock" if usable else None
         self._fd: int | None = None
 
     def __enter__(self) -> None:
-        self._threads.acquire()
+        timeout = self.timeout_s
+        deadline = None if timeout is None else time.monotonic() + timeout
+        if not self._threads.acquire(timeout=-1 if timeout is None else timeout):
+            raise _locked(f"another writer of this process held the write lock for {timeout:g} s")
         try:
             if self._path is not None and fcntl is not None:
                 if self._fd is None:  # opened on first use: read-only users never create the file
                     self._fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o644)
-                fcntl.flock(self._fd, fcntl.LOCK_EX)
+                if deadline is None:
+                    fcntl.flock(self._fd, fcntl.LOCK_EX)
+                else:
+                    self._flock_until(self._fd, deadline)
         except BaseException:
             self._threads.release()
             raise
+
+    def _flock_until(self, fd: int, deadline: float) -> None:
+        assert fcntl is not None
+        pause = 0.0002
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise _locked(f"another process held the write lock for {self.timeout_s:g} s") from None
+                time.sleep(pause)
+                pause = min(pause * 2, 0.002)
 
     def __exit__(self, *_exc) -> None:
         if self._fd is not None and fcntl is not None:
@@ -86,13 +131,18 @@ class SqliteWriteLock:
 class Database:
     """Owns the engine; hands out transactional sessions."""
 
-    def __init__(self, url: str):
+    def __init__(self, url: str, busy_timeout_s: float | None = None):
+        """``busy_timeout_s`` (SQLite): how long a transaction waits for another writer, in
+        ``SqliteWriteLock`` and then in SQLite's busy handler, before "database is locked" (the
+        server's requests); ``None``: in line for the lock as long as it takes, then
+        ``BUSY_TIMEOUT_S`` in SQLite's handler (migrations, training, the command line)."""
         self.url = url
-        self.engine = make_engine(url)
+        self.engine = make_engine(url, BUSY_TIMEOUT_S if busy_timeout_s is None else busy_timeout_s)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         #: an embedded database: every call is a local file access, never a network wait
         self.embedded = url.startswith("sqlite")
-        self._write_lock = SqliteWriteLock(make_url(url).database) if self.embedded else nullcontext()
+        self._write_lock = (SqliteWriteLock(make_url(url).database, busy_timeout_s) if self.embedded
+                            else nullcontext())
 
     @contextmanager
     def transaction(self, rollback_only: bool = False, write: bool = False) -> Iterator[Session]:
