@@ -213,6 +213,21 @@ class ReferencePointSummary:
     fingerprints: int
 
 
+@dataclass(frozen=True)
+class CoverageCell:
+    """One transmitter's measured RSS at one reference point (``reference_point_id`` None: the floor's crowd
+    fingerprints, which belong to no reference point)."""
+
+    reference_point_id: int | None
+    label: str | None
+    x: float | None
+    y: float | None
+    source: str
+    fingerprints: int
+    heard: int
+    mean_rss_dbm: float | None
+
+
 # --- models -----------------------------------------------------------------------------------
 
 ModelStatus = Literal["queued", "training", "ready", "failed"]

@@ -183,6 +183,30 @@ class ReferencePointOut(BaseModel):
     fingerprints: int
 
 
+class CoverageCount(BaseModel):
+    fingerprints: int = Field(description="Fingerprints counted.")
+    heard: int = Field(description="How many of them heard the transmitter.")
+    mean_rss_dbm: float | None = Field(description="Mean RSS (dBm) over the fingerprints that heard it; "
+                                       "null when none did.")
+
+
+class CoveragePointOut(CoverageCount):
+    label: str | None
+    x: float = Field(description=X_DOC)
+    y: float = Field(description=Y_DOC)
+
+
+class CoverageOut(BaseModel):
+    transmitter: str
+    floor: int
+    reference_points: list[CoveragePointOut] = Field(
+        description="Every reference point of the floor with its survey fingerprints."
+    )
+    crowd: CoverageCount = Field(
+        description="The floor's crowd fingerprints (they belong to no reference point), all together."
+    )
+
+
 # --- surveys ---------------------------------------------------------------------------
 
 

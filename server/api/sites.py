@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response, status
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Response, status
 
 from server.api.deps import Admin, PathId, Sites
 from server.domain import Floor, NewSite, SiteSummary, Transmitter
 from server.schemas import (
+    TX_ID_PATTERN,
+    CoverageCount,
+    CoverageOut,
+    CoveragePointOut,
     FingerprintCounts,
     FloorOut,
     ReferencePointOut,
@@ -102,3 +108,32 @@ def get_reference_points(site_id: PathId, sites: Sites, _: Admin) -> list[Refere
         ReferencePointOut(label=rp.label, floor=rp.floor, x=rp.x, y=rp.y, fingerprints=rp.fingerprints)
         for rp in sites.reference_points(site_id)
     ]
+
+
+@router.get("/{site_id}/coverage", response_model=CoverageOut)
+def get_coverage(
+    site_id: PathId,
+    sites: Sites,
+    _: Admin,
+    transmitter: Annotated[str, Query(pattern=TX_ID_PATTERN, description="The transmitter's id.")],
+    floor: Annotated[int, Query(ge=-20, le=200, description="Floor level.")],
+) -> CoverageOut:
+    """Measured coverage (extension): per reference point of the floor, how many survey fingerprints it
+    holds, how many heard the transmitter and their mean RSS; the floor's crowd fingerprints together."""
+    cells = sites.coverage(site_id, transmitter, floor)
+    crowd = [c for c in cells if c.reference_point_id is None]
+    crowd_n = sum(c.fingerprints for c in crowd)
+    crowd_heard = sum(c.heard for c in crowd)
+    crowd_mean = (
+        sum(c.mean_rss_dbm * c.heard for c in crowd if c.mean_rss_dbm is not None) / crowd_heard if crowd_heard else None
+    )
+    return CoverageOut(
+        transmitter=transmitter,
+        floor=floor,
+        reference_points=[
+            CoveragePointOut(label=c.label, x=c.x, y=c.y, fingerprints=c.fingerprints, heard=c.heard,
+                             mean_rss_dbm=c.mean_rss_dbm)
+            for c in cells if c.reference_point_id is not None and c.x is not None and c.y is not None
+        ],
+        crowd=CoverageCount(fingerprints=crowd_n, heard=crowd_heard, mean_rss_dbm=crowd_mean),
+    )

@@ -8,7 +8,7 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.db import Database
-from server.domain import NewSite, ReferencePointSummary, Site, SiteSummary, Transmitter
+from server.domain import CoverageCell, NewSite, ReferencePointSummary, Site, SiteSummary, Transmitter
 from server.errors import Conflict, Invalid, NotFound
 from server.store import sites as store
 from server.store import surveys as survey_store
@@ -77,6 +77,13 @@ class SiteService:
         with self._db.transaction() as s:
             _existing(s, site_id)
             return survey_store.reference_points(s, site_id)
+
+    def coverage(self, site_id: int, transmitter_id: str, floor: int) -> list[CoverageCell]:
+        """Measured RSS of one transmitter per reference point of a floor (and over the floor's crowd
+        fingerprints); a transmitter no fingerprint heard gives ``heard`` 0 everywhere."""
+        with self._db.transaction() as s:
+            _existing(s, site_id)
+            return survey_store.coverage(s, site_id, transmitter_id, floor)
 
 
 def _no_site(site_id: int) -> NotFound:

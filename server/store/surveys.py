@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session
 
-from server.domain import FingerprintRecord, ReferencePointSummary, SurveyOutcome
+from server.domain import CoverageCell, FingerprintRecord, ReferencePointSummary, SurveyOutcome
 from server.store._results import tuples
 from server.store.sites import add_heard_transmitters
 from server.tables import Fingerprint, ReferencePoint, SurveyUpload
@@ -180,6 +180,30 @@ def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
         .order_by(ReferencePoint.floor, ReferencePoint.id)
     )
     return [ReferencePointSummary(*row) for row in tuples(rows)]
+
+
+def coverage(s: Session, site_id: int, transmitter_id: str, floor: int) -> list[CoverageCell]:
+    """Per reference point of ``floor`` and per source: its fingerprints, how many heard ``transmitter_id``
+    and their mean RSS, in one query (JSON access as each backend spells it: SQLite ``JSON_EXTRACT``,
+    PostgreSQL ``->>``; a fingerprint that did not hear the transmitter gives NULL, which ``count`` and
+    ``avg`` skip). Crowd fingerprints belong to no reference point: one cell with ``reference_point_id`` None."""
+    rss = Fingerprint.rss[transmitter_id].as_float()
+    rows = s.execute(
+        select(
+            Fingerprint.reference_point_id, ReferencePoint.label, ReferencePoint.x, ReferencePoint.y,
+            Fingerprint.source, func.count(), func.count(rss), func.avg(rss),
+        )
+        .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
+        .where(Fingerprint.site_id == site_id, Fingerprint.floor == floor)
+        .group_by(
+            Fingerprint.reference_point_id, ReferencePoint.label, ReferencePoint.x, ReferencePoint.y, Fingerprint.source,
+        )
+        .order_by(Fingerprint.reference_point_id, Fingerprint.source)
+    )
+    return [
+        CoverageCell(rp_id, label, x, y, source, int(n), int(heard), None if mean is None else float(mean))
+        for rp_id, label, x, y, source, n, heard, mean in tuples(rows)
+    ]
 
 
 def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:

@@ -134,3 +134,46 @@ def test_reference_points_group_by_label_or_position(admin):
     points = admin.get(f"/api/v1/sites/{site['id']}/reference-points").json()
     seen = sorted([(p["floor"], p["label"], p["x"], p["y"], p["fingerprints"]) for p in points], key=str)
     assert seen == sorted([(0, "A", 2.0, 1.0, 2), (0, None, 5.0, 5.0, 2), (1, None, 5.0, 5.0, 1)], key=str)
+
+
+def test_coverage_is_the_measured_rss_per_reference_point(admin):
+    site = admin.post("/api/v1/sites", json={"name": "Coverage"}).json()
+    ap, other = "wifi:aa:bb:cc:dd:ee:01", "wifi:ap2"
+    survey = {
+        "fingerprints": [
+            {"x": 1, "y": 1, "floor": 0, "rss": {ap: -60, other: -80}, "label": "A"},
+            {"x": 3, "y": 1, "floor": 0, "rss": {ap: -63.5}, "label": "A"},
+            {"x": 3, "y": 1, "floor": 0, "rss": {other: -75}, "label": "A"},
+            {"x": 5, "y": 5, "floor": 0, "rss": {other: -70}},
+            {"x": 5, "y": 5, "floor": 1, "rss": {ap: -90}},
+        ]
+    }
+    assert admin.post(f"/api/v1/sites/{site['id']}/surveys", json=survey).status_code == 201
+    answer = admin.get(f"/api/v1/sites/{site['id']}/coverage", params={"transmitter": ap, "floor": 0})
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert body["transmitter"] == ap and body["floor"] == 0
+    points = sorted(body["reference_points"], key=lambda p: p["x"])
+    assert [(p["label"], p["fingerprints"], p["heard"]) for p in points] == [("A", 3, 2), (None, 1, 0)]
+    assert points[0]["mean_rss_dbm"] == pytest.approx((-60 - 63.5) / 2)
+    assert (points[0]["x"], points[0]["y"]) == (pytest.approx(7 / 3), 1.0)
+    assert points[1]["mean_rss_dbm"] is None and (points[1]["x"], points[1]["y"]) == (5.0, 5.0)
+    assert body["crowd"] == {"fingerprints": 0, "heard": 0, "mean_rss_dbm": None}
+
+    upstairs = admin.get(f"/api/v1/sites/{site['id']}/coverage", params={"transmitter": ap, "floor": 1}).json()
+    assert [(p["heard"], p["mean_rss_dbm"]) for p in upstairs["reference_points"]] == [(1, -90.0)]
+    never = admin.get(f"/api/v1/sites/{site['id']}/coverage", params={"transmitter": "wifi:nobody", "floor": 0})
+    assert [p["heard"] for p in never.json()["reference_points"]] == [0, 0]
+
+
+def test_coverage_params_and_site(admin, device):
+    site = admin.post("/api/v1/sites", json={"name": "Coverage params"}).json()
+    url = f"/api/v1/sites/{site['id']}/coverage"
+    assert admin.get("/api/v1/sites/999/coverage", params={"transmitter": "wifi:ap1", "floor": 0}).status_code == 404
+    for params in ({"floor": 0}, {"transmitter": "wifi:ap1"}, {"transmitter": "WIFI:AP1", "floor": 0},
+                   {"transmitter": "wifi:ap1", "floor": "one"}, {"transmitter": 'wifi:a"b', "floor": 0}):
+        answer = admin.get(url, params=params)
+        assert answer.status_code == 422, (params, answer.text)
+    assert device.get(url, params={"transmitter": "wifi:ap1", "floor": 0}).status_code == 403
+    empty = admin.get(url, params={"transmitter": "wifi:ap1", "floor": 0}).json()
+    assert empty["reference_points"] == [] and empty["crowd"]["fingerprints"] == 0
