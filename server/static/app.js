@@ -12,9 +12,12 @@ const S = {
   key: null, scope: null, sites: [], site: null, floor: null, rps: [], txs: [], models: [], sessions: [],
   tracks: new Map(), // session id -> {pts: [{idx, x, y, floor, covariance}], color, status}
   streams: [], bounds: null, replayTimer: null, algorithms: [], coverage: "",
+  measured: null, // {tx, floor, body}: GET /coverage for the chosen transmitter and floor
 };
-// Coverage layer: a transmitter's RSS from the log-distance model the server's radio code uses
-// (R0 at 1 m, exponent γ; -45 dBm and 2.5 when the transmitter has none), walls ignored.
+// Coverage layer: measured where the floor has reference points (GET /api/v1/sites/{id}/coverage:
+// the mean RSS of the transmitter at each reference point), else a transmitter's RSS from the
+// log-distance model the server's radio code uses (R0 at 1 m, exponent γ; -45 dBm and 2.5 when
+// the transmitter has none), walls ignored.
 const DEFAULT_R0_DBM = -45.0, DEFAULT_GAMMA = 2.5, HEAT_TOP = -30, HEAT_BOTTOM = -100;
 
 const $ = (id) => document.getElementById(id);
@@ -207,14 +210,35 @@ async function selectSite(id) {
 }
 
 $("floor").addEventListener("change", (e) => { S.floor = Number(e.target.value); S.coverage = ""; fillCoverage(); drawMap(); });
-$("coverage").addEventListener("change", (e) => { S.coverage = e.target.value; drawMap(); });
+$("coverage").addEventListener("change", (e) => { S.coverage = e.target.value; loadCoverage(); });
 
-// The coverage selector: the positioned transmitters of the shown floor.
+// Measured coverage when the shown floor has reference points; the modelled layer otherwise.
+const floorSurveyed = () => S.rps.some((r) => r.floor === S.floor);
+
+async function loadCoverage() {
+  const tx = S.coverage, floor = S.floor, site = S.site;
+  S.measured = null;
+  if (tx && floorSurveyed()) {
+    try {
+      const body = await api(`/api/v1/sites/${site.id}/coverage?transmitter=${encodeURIComponent(tx)}&floor=${floor}`);
+      if (S.coverage !== tx || S.floor !== floor || S.site !== site) return; // chosen again meanwhile
+      S.measured = { tx, floor, body };
+    } catch (err) {
+      setStatus(`coverage: ${err.message}`);
+    }
+  }
+  drawMap();
+}
+
+// The coverage selector: the shown floor's transmitters (on a floor without reference points,
+// only positioned ones: the modelled layer needs a position).
 function fillCoverage() {
+  S.measured = null;
   const off = document.createElement("option");
   off.value = "";
   off.textContent = "off";
-  const txs = S.txs.filter((t) => t.x !== null && (t.floor === null || t.floor === S.floor));
+  const measured = floorSurveyed();
+  const txs = S.txs.filter((t) => (measured || t.x !== null) && (t.floor === null || t.floor === S.floor));
   $("coverage").replaceChildren(off, ...txs.map((t) => {
     const o = document.createElement("option");
     o.value = o.textContent = t.id;
@@ -223,21 +247,51 @@ function fillCoverage() {
   $("coverage").value = S.coverage;
 }
 
+// A dBm value on the heat scale: blue (−100) … green … yellow (−30).
+const heatColor = (rss) => {
+  const f = Math.min(1, Math.max(0, (rss - HEAT_BOTTOM) / (HEAT_TOP - HEAT_BOTTOM)));
+  return `hsl(${240 - 185 * f}, 85%, ${50 + 5 * f}%)`;
+};
+
 function drawCoverage(svg, b) {
-  const t = S.txs.find((x) => x.id === S.coverage);
-  $("coverage-legend").hidden = !t;
-  if (!t) return;
-  const g = el("g", { id: "coverage-layer" }, svg);
+  const m = S.measured && S.measured.tx === S.coverage && S.measured.floor === S.floor ? S.measured.body : null;
+  const t = S.txs.find((x) => x.id === S.coverage && x.x !== null);
+  $("coverage-measured-legend").hidden = !m;
+  svg.classList.toggle("coverage-measured", !!m);
+  $("coverage-legend").hidden = !!m || !t || floorSurveyed();
+  if (m) return drawMeasured(svg, b, m);
+  if (!t || floorSurveyed()) return;
+  const g = el("g", { id: "coverage-layer", class: "modelled" }, svg);
   const r0 = t.tx_power_dbm ?? DEFAULT_R0_DBM, gamma = t.path_loss_exponent ?? DEFAULT_GAMMA;
   const cell = Math.max(0.25, b.size / 80);
   for (let x = b.x0; x < b.x1; x += cell) {
     for (let y = b.y0; y < b.y1; y += cell) {
       const d = Math.max(1, Math.hypot(x + cell / 2 - t.x, y + cell / 2 - t.y));
       const rss = r0 - 10 * gamma * Math.log10(d);
-      const f = Math.min(1, Math.max(0, (rss - HEAT_BOTTOM) / (HEAT_TOP - HEAT_BOTTOM)));
-      el("rect", { x: X(x), y: Y(y + cell), width: cell * 1.02, height: cell * 1.02, class: "heat", fill: `hsl(${240 - 185 * f}, 85%, ${50 + 5 * f}%)` }, g);
+      el("rect", { x: X(x), y: Y(y + cell), width: cell * 1.02, height: cell * 1.02, class: "heat", fill: heatColor(rss) }, g);
     }
   }
+}
+
+// Measured coverage: a disc per reference point coloured by the transmitter's mean RSS there
+// (hollow and dashed where no fingerprint of the point heard it).
+function drawMeasured(svg, b, m) {
+  const g = el("g", { id: "coverage-layer", class: "measured" }, svg);
+  const r = b.size / 55;
+  for (const p of m.reference_points) {
+    const heard = p.mean_rss_dbm !== null;
+    const c = el("circle", {
+      cx: X(p.x), cy: Y(p.y), r, class: heard ? "cov heard" : "cov not-heard", "data-label": p.label || "",
+      ...(heard ? { fill: heatColor(p.mean_rss_dbm), "data-rss": p.mean_rss_dbm.toFixed(1) } : {}),
+    }, g);
+    el("title", {}, c).textContent = heard
+      ? `${m.transmitter} at ${p.label || "(no label)"}: mean ${p.mean_rss_dbm.toFixed(1)} dBm, heard by ${p.heard} of ${p.fingerprints} fingerprints`
+      : `${m.transmitter} at ${p.label || "(no label)"}: not heard by any of ${p.fingerprints} fingerprints`;
+  }
+  const c = m.crowd;
+  $("coverage-crowd").textContent = c.fingerprints
+    ? ` · crowd fingerprints on this floor: ${c.heard} of ${c.fingerprints} heard it${c.heard ? `, mean ${c.mean_rss_dbm.toFixed(1)} dBm` : ""}`
+    : "";
 }
 $("show-rps").addEventListener("change", (e) => $("map").classList.toggle("hide-rps", !e.target.checked));
 $("show-tx").addEventListener("change", (e) => $("map").classList.toggle("hide-tx", !e.target.checked));

@@ -70,6 +70,20 @@ def position(page, sid: str) -> tuple[float, float]:
     return float(dot.get_attribute("cx")), float(dot.get_attribute("cy"))
 
 
+def test_coverage_is_modelled_on_a_floor_without_survey(page, live_server, site, admin):
+    tx = {"id": "wifi:aa:bb:cc:dd:ee:03", "kind": "wifi", "floor": 1, "x": 5.0, "y": 5.0}
+    assert admin.put(f"/api/v1/sites/{site}/transmitters", json=[tx]).status_code == 200
+    login(page, live_server.url, ADMIN_KEY)
+    page.wait_for_selector("circle.rp")
+    page.select_option("#floor", "1")
+    page.select_option("#coverage", tx["id"])
+    page.wait_for_selector("#coverage-layer.modelled rect.heat")
+    assert page.locator("rect.heat").count() > 100 and page.locator("circle.cov").count() == 0
+    assert page.locator("#coverage-legend").is_visible() and "modelled" in page.text_content("#coverage-legend")
+    assert not page.locator("#coverage-measured-legend").is_visible()
+    assert page.errors == []
+
+
 def test_dashboard_map_and_live_session(page, live_server, site, device):
     login(page, live_server.url, ADMIN_KEY)
     assert page.text_content("#scope") == "admin key"
@@ -82,11 +96,25 @@ def test_dashboard_map_and_live_session(page, live_server, site, device):
     assert radius["rp4"] > radius["rp0"]
     assert page.locator("line.wall").count() == 5
     assert page.locator(".tx.wifi").count() == 2 and page.locator(".tx.ble").count() == 1
-    # the modelled coverage of a transmitter: a layer of cells, and its legend
+    # the measured coverage of a surveyed transmitter: a disc per reference point coloured by its
+    # mean RSS (rp{i} at x heard -40 - 2x - k for k < i + 1), with the dBm scale in the legend
     page.select_option("#coverage", "wifi:aa:bb:cc:dd:ee:01")
-    assert page.locator("rect.heat").count() > 100 and page.locator("#coverage-legend").is_visible()
+    page.wait_for_selector("#coverage-layer.measured circle.cov")
+    cov = {c.get_attribute("data-label"): c for c in page.locator("circle.cov").all()}
+    assert set(cov) == {f"rp{i}" for i in range(len(RPS))}
+    for i, (x, _) in enumerate(RPS):
+        assert float(cov[f"rp{i}"].get_attribute("data-rss")) == pytest.approx(-40.0 - 2 * x - i / 2, abs=0.05)
+    assert page.locator("circle.cov.not-heard").count() == 0 and page.locator("rect.heat").count() == 0
+    assert cov["rp0"].get_attribute("fill") != cov["rp4"].get_attribute("fill")
+    assert page.locator("#coverage-measured-legend").is_visible() and not page.locator("#coverage-legend").is_visible()
+    assert "dBm" in page.text_content("#coverage-measured-legend")
+    # a transmitter no fingerprint heard: every reference point "not heard"
+    page.select_option("#coverage", "wifi:aa:bb:cc:dd:ee:02")
+    page.wait_for_function("document.querySelectorAll('circle.cov.not-heard').length === 5")
+    assert page.locator("circle.cov.heard").count() == 0
     page.select_option("#coverage", "")
-    assert page.locator("rect.heat").count() == 0
+    assert page.locator("circle.cov").count() == 0 and page.locator("rect.heat").count() == 0
+    assert not page.locator("#coverage-measured-legend").is_visible()
     assert "1 · " not in page.text_content("#floor") or page.locator("#floor option").count() == 2
 
     # a session posted by a client appears live, with its covariance ellipse, and moves
