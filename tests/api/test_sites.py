@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 
 import pytest
+from sqlalchemy import insert
+
+from server.db import Database
+from server.tables import Fingerprint
 
 WALLS = [[0, 0, 10, 0], [10, 0, 10, 8]]
 SITE = {
@@ -177,3 +181,33 @@ def test_coverage_params_and_site(admin, device):
     assert device.get(url, params={"transmitter": "wifi:ap1", "floor": 0}).status_code == 403
     empty = admin.get(url, params={"transmitter": "wifi:ap1", "floor": 0}).json()
     assert empty["reference_points"] == [] and empty["crowd"]["fingerprints"] == 0
+
+
+@pytest.mark.parametrize("tx", ["wifi:a.b-c_d", "ble:x", "wifi:wap001", "ble:f7826da6-4fa2-4e98-8024-bc5b71e0893e:1:65535"])
+def test_coverage_reads_any_transmitter_id_form(admin, tx):
+    site = admin.post("/api/v1/sites", json={"name": f"Coverage {tx}"}).json()
+    fps = [{"x": 0, "y": 0, "floor": 0, "rss": {tx: -51.5, "wifi:zz": -60}}, {"x": 0, "y": 0, "floor": 0, "rss": {tx: -52.5}}]
+    assert admin.post(f"/api/v1/sites/{site['id']}/surveys", json={"fingerprints": fps}).status_code == 201
+    body = admin.get(f"/api/v1/sites/{site['id']}/coverage", params={"transmitter": tx, "floor": 0}).json()
+    assert [(p["fingerprints"], p["heard"], p["mean_rss_dbm"]) for p in body["reference_points"]] == [(2, 2, -52.0)]
+
+
+def test_coverage_counts_the_floors_crowd_fingerprints_apart(admin, clean_db):
+    site = admin.post("/api/v1/sites", json={"name": "Coverage crowd"}).json()
+    survey = {"fingerprints": [{"x": 1, "y": 1, "floor": 0, "rss": {"wifi:ap1": -50}, "label": "A"}]}
+    assert admin.post(f"/api/v1/sites/{site['id']}/surveys", json=survey).status_code == 201
+    db = Database(clean_db)
+    try:
+        with db.transaction() as s:
+            s.execute(insert(Fingerprint), [
+                {"site_id": site["id"], "source": "crowd", "floor": floor, "x": 2.0, "y": 2.0, "rss": rss, "samples": 1}
+                for floor, rss in [(0, {"wifi:ap1": -60.0}), (0, {"wifi:ap1": -70.0}), (0, {"wifi:ap2": -40.0}),
+                                   (1, {"wifi:ap1": -90.0})]
+            ])
+    finally:
+        db.dispose()
+    body = admin.get(f"/api/v1/sites/{site['id']}/coverage", params={"transmitter": "wifi:ap1", "floor": 0}).json()
+    assert [(p["label"], p["fingerprints"], p["heard"], p["mean_rss_dbm"]) for p in body["reference_points"]] == [
+        ("A", 1, 1, -50.0)
+    ]
+    assert body["crowd"] == {"fingerprints": 3, "heard": 2, "mean_rss_dbm": -65.0}
