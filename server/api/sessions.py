@@ -10,6 +10,7 @@ from fastapi.responses import JSONResponse
 from server.api.deps import Device, Sessions
 from server.api.fastpath import json_body_doc, read_json, run_blocking
 from server.domain import BatchAnswer, SessionInfo
+from server.errors import InvalidField
 from server.estimation.types import Estimate, Scan, Step
 from server.schemas import (
     BatchIn,
@@ -82,6 +83,7 @@ def get_session(session_id: str, sessions: Sessions, principal: Device) -> Sessi
             responses=_NOT_YOURS)
 def get_track(
     session_id: str,
+    request: Request,
     sessions: Sessions,
     principal: Device,
     smoothed: Annotated[bool, Query(description=(
@@ -89,11 +91,29 @@ def get_track(
         "estimates (same length, times, floors and sources; each position uses the fixes after it too) — "
         "the best after-the-fact path, for replay and analytics. false (default): the live track as "
         "estimated."))] = False,
-) -> list[TrackEstimateOut]:
+    since: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description=(
+        "Extension. Only the estimates whose track index (0 = the first) is greater than this: the index "
+        "of the last estimate already read. Default: from the start."))] = None,
+    limit: Annotated[int | None, Query(ge=1, le=10_000, description=(
+        "Extension. At most this many estimates; when more remain, a `Link: <...>; rel=\"next\"` header "
+        "gives the URL of the next page. Default: no limit (the whole rest of the track)."))] = None,
+) -> Any:
     """The session's track, oldest first. A `scan` estimate whose fix the innovation gate refused
-    carries the extension `fix_refused: true`."""
-    track, refused = sessions.track_marked(principal, session_id, smoothed)
-    return [track_estimate_out(e, i in refused) for i, e in enumerate(track)]
+    carries the extension `fix_refused: true`. With `since` and/or `limit` (extension) one page of
+    the live track; they do not combine with `smoothed=true` (422)."""
+    if since is None and limit is None:
+        track, refused = sessions.track_marked(principal, session_id, smoothed)
+        return [track_estimate_out(e, i in refused) for i, e in enumerate(track)]
+    if smoothed:
+        raise InvalidField("smoothed", "smoothed=true does not combine with since or limit: "
+                                       "the smoothed track is read whole")
+    page, refused_idx, more = sessions.track_page(principal, session_id, -1 if since is None else since, limit)
+    body = [track_estimate_out(e, idx in refused_idx).model_dump(mode="json", exclude_unset=True) for idx, e in page]
+    headers = {}
+    if more and limit is not None:
+        url = request.url.include_query_params(since=page[-1][0], limit=limit)
+        headers["Link"] = f'<{url}>; rel="next"'
+    return JSONResponse(body, headers=headers)
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_NOT_YOURS)

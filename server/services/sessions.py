@@ -131,6 +131,20 @@ class SessionService:
             refused = store.refused_fix_indexes(s, session_id)
         return (smooth_track(track) if smoothed else track), refused
 
+    def track_page(
+        self, principal: Principal, session_id: str, since: int, limit: int | None
+    ) -> tuple[list[tuple[int, Estimate]], set[int], bool]:
+        """One page of the live track: (idx, estimate) after index ``since`` (at most ``limit``;
+        all of them when None), the indexes of its scan estimates whose fix was refused, and
+        whether more estimates follow the page (one row more is read to know)."""
+        with self.db.transaction() as s:
+            _visible(store.get_session(s, session_id), principal, session_id)
+            rows = store.estimates_after(s, session_id, since, 2**62 if limit is None else limit + 1)
+            more = limit is not None and len(rows) > limit
+            page = rows[:limit] if more else rows
+            refused = store.refused_fix_indexes(s, session_id) if page else set()
+        return page, refused, more
+
     def track_after(
         self, principal: Principal, session_id: str, after_idx: int, limit: int = 500
     ) -> tuple[SessionInfo, list[tuple[int, Estimate]]]:

@@ -1,0 +1,105 @@
+"""GET /sessions/{id}/track?since=&limit= (extension): pages walk the whole track once, in
+order; a Link rel="next" header only while more remains; bounds; smoothed does not combine;
+another device's session stays 404; without the parameters the answer is the whole list."""
+
+from __future__ import annotations
+
+import re
+
+import httpx
+import pytest
+
+from tests.api.test_sessions import batch, open_session, site  # noqa: F401  (fixture)
+
+_LINK = re.compile(r'^<(?P<url>[^>]+)>; rel="next"$')
+
+
+def _track_session(device, site, batches: int = 5) -> str:  # noqa: F811
+    sid = open_session(device, site, "kf")["id"]
+    for seq in range(batches):
+        answer = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(seq, 2.0 * seq, 4))
+        assert answer.status_code == 200, answer.text
+    return sid
+
+
+@pytest.mark.parametrize("limit", [1, 3, 7, 21, 10_000])
+def test_paging_walks_the_whole_track_once_in_order(device, site, limit):  # noqa: F811
+    sid = _track_session(device, site)
+    whole = device.get(f"/api/v1/sessions/{sid}/track")
+    assert whole.status_code == 200 and "link" not in whole.headers
+    full = whole.json()
+    assert len(full) == 21  # init + 5 batches of 4 steps
+
+    got: list[dict] = []
+    url: str | None = f"/api/v1/sessions/{sid}/track?limit={limit}"
+    pages = 0
+    while url is not None:
+        answer = device.get(url)
+        assert answer.status_code == 200, answer.text
+        page = answer.json()
+        assert isinstance(page, list) and 1 <= len(page) <= limit
+        got.extend(page)
+        pages += 1
+        link = answer.headers.get("link")
+        if link is None:
+            url = None
+        else:
+            m = _LINK.match(link)
+            assert m, link
+            assert len(page) == limit  # only a full page may be followed by more
+            url = m.group("url")
+            assert f"since={len(got) - 1}" in url and f"limit={limit}" in url
+    assert got == full
+    assert pages == -(-len(full) // limit)
+
+
+def test_since_alone_and_past_the_end(device, site):  # noqa: F811
+    sid = _track_session(device, site, 2)
+    full = device.get(f"/api/v1/sessions/{sid}/track").json()
+    rest = device.get(f"/api/v1/sessions/{sid}/track", params={"since": 4})
+    assert rest.json() == full[5:] and "link" not in rest.headers
+    assert device.get(f"/api/v1/sessions/{sid}/track", params={"since": -1}).json() == full
+    end = device.get(f"/api/v1/sessions/{sid}/track", params={"since": len(full) - 1, "limit": 5})
+    assert end.status_code == 200 and end.json() == [] and "link" not in end.headers
+    # a page cut exactly at the end has no next link
+    exact = device.get(f"/api/v1/sessions/{sid}/track", params={"since": len(full) - 4, "limit": 3})
+    assert exact.json() == full[-3:] and "link" not in exact.headers
+
+
+def test_a_page_boundary_while_batches_arrive(device, site):  # noqa: F811
+    sid = _track_session(device, site, 1)
+    first = device.get(f"/api/v1/sessions/{sid}/track", params={"limit": 5})
+    assert len(first.json()) == 5 and "link" not in first.headers
+    assert device.post(f"/api/v1/sessions/{sid}/batches", json=batch(1, 2.0, 4)).status_code == 200
+    more = device.get(f"/api/v1/sessions/{sid}/track", params={"since": 4, "limit": 5})
+    assert first.json() + more.json() == device.get(f"/api/v1/sessions/{sid}/track").json()
+
+
+@pytest.mark.parametrize("params", [{"limit": 0}, {"limit": 10_001}, {"since": -2}, {"limit": "x"},
+                                    {"since": 2**31}])
+def test_bounds_are_422(device, site, params):  # noqa: F811
+    sid = _track_session(device, site, 1)
+    assert device.get(f"/api/v1/sessions/{sid}/track", params=params).status_code == 422
+
+
+def test_smoothed_does_not_combine_with_paging(device, site):  # noqa: F811
+    sid = _track_session(device, site, 1)
+    for params in ({"smoothed": "true", "limit": 2}, {"smoothed": "true", "since": 0}):
+        answer = device.get(f"/api/v1/sessions/{sid}/track", params=params)
+        assert answer.status_code == 422 and "smoothed" in answer.text
+    assert device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "false", "limit": 2}).status_code == 200
+
+
+def test_another_devices_session_stays_404(live_server, device, admin, site):  # noqa: F811
+    from server.auth import create_key
+    from server.db import Database
+
+    db = Database(live_server.app.state.settings.database_url)
+    _, other_key = create_key(db, "phone 2", "device")
+    db.dispose()
+    sid = _track_session(device, site, 1)
+    with httpx.Client(base_url=live_server.url, headers={"Authorization": f"Bearer {other_key}"}) as other:
+        for params in ({"limit": 2}, {"since": 0}, {"since": 0, "limit": 2}):
+            assert other.get(f"/api/v1/sessions/{sid}/track", params=params).status_code == 404
+            assert other.get("/api/v1/sessions/nope/track", params=params).status_code == 404
+    assert len(admin.get(f"/api/v1/sessions/{sid}/track", params={"limit": 2}).json()) == 2
