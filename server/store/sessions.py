@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import cast
 
-from sqlalchemy import Connection, Table, bindparam, insert, select, update
+from sqlalchemy import Connection, Table, and_, bindparam, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
@@ -107,18 +107,43 @@ def add_session(
     return _info(row)
 
 
+_LIST_COLUMNS = (
+    _SESSIONS.c.id, _SESSIONS.c.site_id, _SESSIONS.c.owner_key, _SESSIONS.c.filter, _SESSIONS.c.model_id,
+    _SESSIONS.c.status, _SESSIONS.c.created_at, _SESSIONS.c.last_seq, _SESSIONS.c.track_length,
+    _ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance, _ESTIMATES.c.source,
+)
+
+
 def list_sessions(
     s: Session, owner_key: str | None, site_id: int | None, status: str | None, limit: int
 ) -> list[SessionInfo]:
-    """Newest first; ``owner_key`` None lists every owner's."""
-    query = select(TrackingSession).order_by(TrackingSession.created_at.desc(), TrackingSession.id).limit(limit)
+    """Newest first; ``owner_key`` None lists every owner's.
+
+    Each session's ``estimate`` is its track's last estimate (index ``track_length - 1``,
+    one primary-key lookup per listed row in the same query): the tracker state, which
+    holds the same estimate but also the whole filter (a PF's particles), is not read."""
+    query = (
+        select(*_LIST_COLUMNS)
+        .select_from(_SESSIONS.outerjoin(_ESTIMATES, and_(
+            _ESTIMATES.c.session_id == _SESSIONS.c.id, _ESTIMATES.c.idx == _SESSIONS.c.track_length - 1)))
+        .order_by(_SESSIONS.c.created_at.desc(), _SESSIONS.c.id)
+        .limit(limit)
+    )
     if owner_key is not None:
-        query = query.where(TrackingSession.owner_key == owner_key)
+        query = query.where(_SESSIONS.c.owner_key == owner_key)
     if site_id is not None:
-        query = query.where(TrackingSession.site_id == site_id)
+        query = query.where(_SESSIONS.c.site_id == site_id)
     if status is not None:
-        query = query.where(TrackingSession.status == status)
-    return [_info(row) for row in s.scalars(query)]
+        query = query.where(_SESSIONS.c.status == status)
+    return [
+        SessionInfo(
+            id=sid, site_id=site, owner_key=owner, filter=filter, model_id=model_id, status=st,
+            estimate=None if x is None else Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source),
+            created_at=created_at, last_seq=last_seq, track_length=track_length,
+        )
+        for sid, site, owner, filter, model_id, st, created_at, last_seq, track_length, t, x, y, floor, c, source
+        in tuples(s.execute(query))
+    ]
 
 
 def get_session(s: Session, session_id: str) -> SessionInfo | None:
