@@ -142,7 +142,8 @@ class SessionService:
             rows = store.estimates_after(s, session_id, since, 2**62 if limit is None else limit + 1)
             more = limit is not None and len(rows) > limit
             page = rows[:limit] if more else rows
-            refused = store.refused_fix_indexes(s, session_id) if page else set()
+            seqs = store.batch_seq_range(s, session_id, page[0][0], page[-1][0]) if page else None
+            refused = set() if seqs is None else store.refused_fix_indexes(s, session_id, seqs)
         return page, refused, more
 
     def track_after(

@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from typing import cast
 
-from sqlalchemy import Connection, Table, and_, bindparam, insert, select, update
+from sqlalchemy import Connection, Table, and_, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
@@ -178,7 +178,17 @@ def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> 
             for idx, t, x, y, floor, c, source in tuples(rows)]
 
 
-def refused_fix_indexes(s: Session, session_id: str) -> set[int]:
+def batch_seq_range(s: Session, session_id: str, first_idx: int, last_idx: int) -> tuple[int, int] | None:
+    """(lowest, highest) batch seq of the track's estimates first_idx..last_idx (None: none came from a batch)."""
+    row = s.execute(
+        select(func.min(_ESTIMATES.c.seq), func.max(_ESTIMATES.c.seq))
+        .where(_ESTIMATES.c.session_id == session_id, _ESTIMATES.c.idx.between(first_idx, last_idx))
+    ).one()
+    lo, hi = cast(tuple[int | None, int | None], tuple(row))
+    return None if lo is None or hi is None else (lo, hi)
+
+
+def refused_fix_indexes(s: Session, session_id: str, seqs: tuple[int, int] | None = None) -> set[int]:
     """Track indexes of the scan estimates whose fingerprint fix the innovation gate refused,
     from the stored batch answers (``rejected_fixes`` names scan indexes of a batch) and the
     estimates' batch seq; no column of its own.
@@ -187,10 +197,15 @@ def refused_fix_indexes(s: Session, session_id: str) -> set[int]:
     estimate; the batch's applied scans are its scan indexes minus ``skipped_scans``, and
     the k-th of them (by index) is matched to the batch's k-th scan estimate. That is exact
     when a batch lists its scans in time order (as a phone sends them); a batch whose scans
-    were sent out of time order may have its marks on the wrong scans of that batch."""
+    were sent out of time order may have its marks on the wrong scans of that batch.
+
+    ``seqs`` (first, last): only the batches of that seq range (a page of the track reads
+    the answers of its own batches, not every batch's)."""
     refusing: dict[int, dict] = {}
-    for seq, answer in tuples(s.execute(select(_BATCHES.c.seq, _BATCHES.c.answer)
-                                        .where(_BATCHES.c.session_id == session_id))):
+    batches = select(_BATCHES.c.seq, _BATCHES.c.answer).where(_BATCHES.c.session_id == session_id)
+    if seqs is not None:
+        batches = batches.where(_BATCHES.c.seq.between(seqs[0], seqs[1]))
+    for seq, answer in tuples(s.execute(batches)):
         if answer and answer.get("rejected_fixes"):
             refusing[seq] = answer
     if not refusing:

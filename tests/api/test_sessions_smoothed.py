@@ -135,3 +135,23 @@ def test_the_openapi_schema_documents_the_parameter_and_the_field(anonymous):
     smoothed = next(p for p in params if p["name"] == "smoothed")
     assert smoothed["in"] == "query" and "smoother" in smoothed["description"] and smoothed["schema"]["default"] is False
     assert "fix_refused" in schema["components"]["schemas"]["TrackEstimateOut"]["properties"]
+
+
+@pytest.mark.parametrize("limit", [1, 4, 13])
+def test_refused_fix_marks_survive_paging(device, site, scripted, limit):
+    """A page reads the answers of its own batches only: the marks must be the whole track's."""
+    sid, _ = _walk(device, site, scripted, outlier_at=9)
+    track = device.get(f"/api/v1/sessions/{sid}/track").json()
+    assert any("fix_refused" in e for e in track)
+    got: list[dict] = []
+    while True:
+        answer = device.get(f"/api/v1/sessions/{sid}/track", params={"since": len(got) - 1, "limit": limit})
+        assert answer.status_code == 200, answer.text
+        got.extend(answer.json())
+        if "link" not in answer.headers:
+            break
+    assert got == track
+    # a page that starts at the marked estimate itself
+    marked = next(i for i, e in enumerate(track) if "fix_refused" in e)
+    page = device.get(f"/api/v1/sessions/{sid}/track", params={"since": marked - 1, "limit": 1}).json()
+    assert page == [track[marked]] and page[0]["fix_refused"] is True

@@ -9,7 +9,7 @@ import re
 import httpx
 import pytest
 
-from tests.api.test_sessions import batch, open_session, site  # noqa: F401  (fixture)
+from tests.api.test_sessions import batch, open_session, positioning, site  # noqa: F401  (fixtures)
 
 _LINK = re.compile(r'^<(?P<url>[^>]+)>; rel="next"$')
 
@@ -103,3 +103,23 @@ def test_another_devices_session_stays_404(live_server, device, admin, site):  #
             assert other.get(f"/api/v1/sessions/{sid}/track", params=params).status_code == 404
             assert other.get("/api/v1/sessions/nope/track", params=params).status_code == 404
     assert len(admin.get(f"/api/v1/sessions/{sid}/track", params={"limit": 2}).json()) == 2
+
+
+def test_refused_fix_marks_on_pages_of_many_batches(device, site, positioning):  # noqa: F811
+    """A page reads the answers of its own batches only; the marks must still be the whole track's."""
+    sid = open_session(device, site, "kf")["id"]
+    far = [{"t": 0.0, "rss": {"wifi:ap3": -40}}]  # a fix at (0, 10): far from the walk along y = 2
+    for seq in range(8):
+        body = batch(seq, 2.0 * seq, 2, [{**far[0], "t": 2.0 * seq + 0.75}] if seq in (3, 5) else None)
+        assert device.post(f"/api/v1/sessions/{sid}/batches", json=body).status_code == 200
+    track = device.get(f"/api/v1/sessions/{sid}/track").json()
+    marked = [i for i, e in enumerate(track) if "fix_refused" in e]
+    assert marked, track
+    for limit in (1, 2, 3, 5):
+        got: list[dict] = []
+        while True:
+            answer = device.get(f"/api/v1/sessions/{sid}/track", params={"since": len(got) - 1, "limit": limit})
+            got.extend(answer.json())
+            if "link" not in answer.headers:
+                break
+        assert got == track, limit
