@@ -150,17 +150,9 @@ class EKFTracker(selfcal.Calibrating, Tracker):
         self.ekf.x = selfcal.move(x, step.length_m, h)
         self.ekf.P = selfcal.symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
 
-    @staticmethod
-    def _fix_h(x: np.ndarray) -> np.ndarray:
-        return x[:2]
-
-    @staticmethod
-    def _fix_H(x: np.ndarray) -> np.ndarray:
-        return np.eye(2, 4)
-
     def update(self, fix: Fix) -> None:
         R = fix_cov(fix.covariance)
-        self.ekf.update(np.asarray(fix.mean, float), self._fix_H, self._fix_h, R=R)
+        self.ekf.update(np.asarray(fix.mean, float), fix_H, fix_h, R=R)
         self._tidy()
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
@@ -173,8 +165,8 @@ class EKFTracker(selfcal.Calibrating, Tracker):
             self.ekf.x = np.concatenate([prior + np.array([MIN_RANGE_M, 0.0]), self.ekf.x[2:]])
         self.ekf.update(
             np.array([float(range_m)]),
-            lambda x, b: np.hstack([range_H(x[:2], b), np.zeros((1, 2))]),
-            lambda x, b: range_h(x[:2], b),
+            range_H,
+            range_h,
             R=np.array([[float(range_std_m) ** 2]]),
             args=(beacon,),
             hx_args=(beacon,),

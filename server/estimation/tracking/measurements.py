@@ -20,24 +20,27 @@ MIN_RANGE_M = 1e-3
 
 
 def fix_h(x: np.ndarray) -> np.ndarray:
-    """A fix measures the position itself."""
-    return x
+    """A fix measures the position: the first two components of any state ``[x, y, ...]``."""
+    return x[:2]
 
 
 def fix_H(x: np.ndarray) -> np.ndarray:
-    return np.eye(2)
+    """Jacobian of ``fix_h``: ``[I₂ 0]`` (2×n)."""
+    return np.eye(2, len(x))
 
 
 def range_h(x: np.ndarray, beacon: np.ndarray) -> np.ndarray:
-    """Distance from ``x`` to the beacon, as a 1-vector."""
+    """Distance from the position ``x[:2]`` to the beacon, as a 1-vector."""
     return np.array([np.hypot(x[0] - beacon[0], x[1] - beacon[1])])
 
 
 def range_H(x: np.ndarray, beacon: np.ndarray) -> np.ndarray:
-    """Jacobian of ``range_h`` (1×2); the distance is floored at ``MIN_RANGE_M``."""
+    """Jacobian of ``range_h`` (1×n: zero beyond the position); the distance is floored at ``MIN_RANGE_M``."""
     dx, dy = x[0] - beacon[0], x[1] - beacon[1]
     r = max(np.hypot(dx, dy), MIN_RANGE_M)
-    return np.array([[dx / r, dy / r]])
+    H = np.zeros((1, len(x)))
+    H[0, 0], H[0, 1] = dx / r, dy / r
+    return H
 
 
 def range_usable(range_m: float, range_std_m: float, max_range_m: float) -> bool:

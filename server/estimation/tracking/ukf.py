@@ -123,14 +123,6 @@ class UKFXYTracker(Tracker):
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
 
 
-def _fix_h4(x):
-    return x[:2]
-
-
-def _range_h4(x, beacon):
-    return range_h(x[:2], beacon)
-
-
 @register
 class UKFTracker(selfcal.Calibrating, Tracker):
     """Self-calibrating UKF, state [x, y, b, s].
@@ -169,7 +161,7 @@ class UKFTracker(selfcal.Calibrating, Tracker):
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._aug_points = MerweScaledSigmaPoints(6, alpha=alpha, beta=beta, kappa=kappa)
         points = MerweScaledSigmaPoints(4, alpha=alpha, beta=beta, kappa=kappa)
-        self.ukf = UnscentedKalmanFilter(dim_x=4, dim_z=2, dt=1.0, hx=_fix_h4, fx=_fx_none, points=points)
+        self.ukf = UnscentedKalmanFilter(dim_x=4, dim_z=2, dt=1.0, hx=fix_h, fx=_fx_none, points=points)
         x, P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
         self._set(x, P)
 
@@ -190,7 +182,7 @@ class UKFTracker(selfcal.Calibrating, Tracker):
 
     def update(self, fix: Fix) -> None:
         self._prepare_update()
-        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=_fix_h4)
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=fix_h)
         self._set(self.ukf.x, self.ukf.P)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
@@ -199,7 +191,7 @@ class UKFTracker(selfcal.Calibrating, Tracker):
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, self.mean)
         self._prepare_update()
-        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=_range_h4,
+        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h,
                         beacon=beacon)
         x = np.asarray(self.ukf.x, float).copy()
         if constraint is not None:
