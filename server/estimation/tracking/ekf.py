@@ -30,8 +30,50 @@ from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.types import Fix, Step, step_displacement
 
 
+class _EKFUpdates:
+    """Fix and beacon-range updates of a filterpy EKF whose state starts with the position
+    [x, y] (measurement models in ``measurements``); ``_tidy`` keeps the state valid after each."""
+
+    ekf: ExtendedKalmanFilter
+    params: dict[str, float]
+
+    def _tidy(self) -> None:
+        raise NotImplementedError
+
+    def update(self, fix: Fix) -> None:
+        R = fix_cov(fix.covariance)
+        self.ekf.update(np.asarray(fix.mean, float), fix_H, fix_h, R=R)
+        self._tidy()
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        x = np.array(self.ekf.x, float).reshape(-1)
+        prior = x[:2].copy()
+        constraint = parse_on_wall(on_wall, prior)
+        if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
+            # Jacobian undefined exactly on the beacon: nudge along the first axis.
+            x[:2] = prior + np.array([MIN_RANGE_M, 0.0])
+            self.ekf.x = x
+        self.ekf.update(
+            np.array([float(range_m)]),
+            range_H,
+            range_h,
+            R=np.array([[float(range_std_m) ** 2]]),
+            args=(beacon,),
+            hx_args=(beacon,),
+        )
+        self._tidy()
+        if constraint is not None:
+            x = np.array(self.ekf.x, float).reshape(-1)
+            x[:2], _ = enforce_side(x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
+            self.ekf.x = x
+        return True
+
+
 @register
-class EKFXYTracker(Tracker):
+class EKFXYTracker(_EKFUpdates, Tracker):
     name = "ekf-xy"
     supports_range = True
 
@@ -56,36 +98,9 @@ class EKFXYTracker(Tracker):
     def predict(self, step: Step) -> None:
         self.ekf.Q = step_noise_cov(step) + self.params["q"] * np.eye(2)
         self.ekf.predict(u=step_displacement(step.length_m, step.heading_deg))
-        self._symmetrise()
+        self._tidy()
 
-    def update(self, fix: Fix) -> None:
-        R = fix_cov(fix.covariance)
-        self.ekf.update(np.asarray(fix.mean, float), fix_H, fix_h, R=R)
-        self._symmetrise()
-
-    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
-            return False
-        beacon = np.asarray(beacon_xy, float).reshape(2)
-        prior = self.mean
-        constraint = parse_on_wall(on_wall, prior)
-        if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
-            # Jacobian undefined exactly on the beacon: nudge along the first axis.
-            self.ekf.x = prior + np.array([MIN_RANGE_M, 0.0])
-        self.ekf.update(
-            np.array([float(range_m)]),
-            range_H,
-            range_h,
-            R=np.array([[float(range_std_m) ** 2]]),
-            args=(beacon,),
-            hx_args=(beacon,),
-        )
-        self._symmetrise()
-        if constraint is not None:
-            self.ekf.x, _ = enforce_side(self.ekf.x, constraint.wall, constraint.side, self.params["wall_margin_m"])
-        return True
-
-    def _symmetrise(self) -> None:
+    def _tidy(self) -> None:
         self.ekf.P = 0.5 * (self.ekf.P + self.ekf.P.T)
 
     @property
@@ -109,7 +124,7 @@ class EKFXYTracker(Tracker):
 
 
 @register
-class EKFTracker(selfcal.Calibrating, Tracker):
+class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
     """Self-calibrating EKF, state [x, y, b, s] (heading bias in radians, step scale).
 
     Prediction: x⁻ = f(x, d, h), P⁻ = F P Fᵀ + G diag(σd², σh²) Gᵀ + diag(q, q, σb², σs²)
@@ -149,33 +164,6 @@ class EKFTracker(selfcal.Calibrating, Tracker):
         vd, vh = selfcal.step_input_var(step)
         self.ekf.x = selfcal.move(x, step.length_m, h)
         self.ekf.P = selfcal.symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
-
-    def update(self, fix: Fix) -> None:
-        R = fix_cov(fix.covariance)
-        self.ekf.update(np.asarray(fix.mean, float), fix_H, fix_h, R=R)
-        self._tidy()
-
-    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
-            return False
-        beacon = np.asarray(beacon_xy, float).reshape(2)
-        prior = self.mean
-        constraint = parse_on_wall(on_wall, prior)
-        if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
-            self.ekf.x = np.concatenate([prior + np.array([MIN_RANGE_M, 0.0]), self.ekf.x[2:]])
-        self.ekf.update(
-            np.array([float(range_m)]),
-            range_H,
-            range_h,
-            R=np.array([[float(range_std_m) ** 2]]),
-            args=(beacon,),
-            hx_args=(beacon,),
-        )
-        self._tidy()
-        if constraint is not None:
-            xy, _ = enforce_side(self.ekf.x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
-            self.ekf.x = np.concatenate([xy, self.ekf.x[2:]])
-        return True
 
     def _tidy(self) -> None:
         self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(4))

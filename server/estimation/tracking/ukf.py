@@ -33,8 +33,42 @@ def _fx_none(x, dt):
     return x
 
 
+class _UKFUpdates:
+    """Fix and beacon-range updates of a filterpy UKF whose state starts with the position
+    [x, y] (measurement models in ``measurements``); sigma points are recomputed from (x, P)
+    before each, and ``_set`` stores the posterior."""
+
+    ukf: UnscentedKalmanFilter
+    params: dict[str, float]
+
+    def _set(self, x, P) -> None:
+        raise NotImplementedError
+
+    def _prepare_update(self) -> None:
+        self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
+
+    def update(self, fix: Fix) -> None:
+        self._prepare_update()
+        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=fix_h)
+        self._set(self.ukf.x, self.ukf.P)
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            return False
+        beacon = np.asarray(beacon_xy, float).reshape(2)
+        constraint = parse_on_wall(on_wall, np.asarray(self.ukf.x, float)[:2].copy())
+        self._prepare_update()
+        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h,
+                        beacon=beacon)
+        x = np.asarray(self.ukf.x, float).copy()
+        if constraint is not None:
+            x[:2], _ = enforce_side(x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
+        self._set(x, self.ukf.P)
+        return True
+
+
 @register
-class UKFXYTracker(Tracker):
+class UKFXYTracker(_UKFUpdates, Tracker):
     name = "ukf-xy"
     supports_range = True
 
@@ -78,29 +112,6 @@ class UKFXYTracker(Tracker):
         x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self.params["q"] * np.eye(2))
         self._set(x, P)
 
-    def _prepare_update(self) -> None:
-        self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
-
-    def update(self, fix: Fix) -> None:
-        self._prepare_update()
-        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=fix_h)
-        self._set(self.ukf.x, self.ukf.P)
-
-    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
-            return False
-        beacon = np.asarray(beacon_xy, float).reshape(2)
-        constraint = parse_on_wall(on_wall, self.mean)
-        self._prepare_update()
-        self.ukf.update(
-            np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h, beacon=beacon
-        )
-        x = self.ukf.x
-        if constraint is not None:
-            x, _ = enforce_side(x, constraint.wall, constraint.side, self.params["wall_margin_m"])
-        self._set(x, self.ukf.P)
-        return True
-
     def _set(self, x, P) -> None:
         self.ukf.x = np.asarray(x, float).reshape(2).copy()
         self.ukf.P = 0.5 * (np.asarray(P, float) + np.asarray(P, float).T)
@@ -124,7 +135,7 @@ class UKFXYTracker(Tracker):
 
 
 @register
-class UKFTracker(selfcal.Calibrating, Tracker):
+class UKFTracker(_UKFUpdates, selfcal.Calibrating, Tracker):
     """Self-calibrating UKF, state [x, y, b, s].
 
     Prediction: Merwe sigma points of [x, y, b, s, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²))
@@ -176,28 +187,6 @@ class UKFTracker(selfcal.Calibrating, Tracker):
         moved = selfcal.move_many(sig[:, :4], sig[:, 4], sig[:, 5])
         x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self._Q)
         self._set(x, P)
-
-    def _prepare_update(self) -> None:
-        self.ukf.sigmas_f = self.ukf.points_fn.sigma_points(self.ukf.x, self.ukf.P)
-
-    def update(self, fix: Fix) -> None:
-        self._prepare_update()
-        self.ukf.update(np.asarray(fix.mean, float), R=fix_cov(fix.covariance), hx=fix_h)
-        self._set(self.ukf.x, self.ukf.P)
-
-    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
-            return False
-        beacon = np.asarray(beacon_xy, float).reshape(2)
-        constraint = parse_on_wall(on_wall, self.mean)
-        self._prepare_update()
-        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h,
-                        beacon=beacon)
-        x = np.asarray(self.ukf.x, float).copy()
-        if constraint is not None:
-            x[:2], _ = enforce_side(x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
-        self._set(x, self.ukf.P)
-        return True
 
     def _set(self, x, P) -> None:
         self.ukf.x = selfcal.clamp(np.asarray(x, float).reshape(4))
