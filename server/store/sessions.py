@@ -88,6 +88,16 @@ def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: 
     ]
 
 
+#: a stored estimate's columns, in the order ``_estimate`` takes them
+_ESTIMATE_COLUMNS = (_ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance,
+                     _ESTIMATES.c.source)
+
+
+def _estimate(t: float | None, x: float, y: float, floor: int, c: list[list[float]], source: str) -> Estimate:
+    """A stored estimate (``_ESTIMATE_COLUMNS``) as the domain type: the inverse of ``_estimate_rows``."""
+    return Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source)
+
+
 # --- open, read, close ------------------------------------------------------------------------
 
 
@@ -109,8 +119,7 @@ def add_session(
 
 _LIST_COLUMNS = (
     _SESSIONS.c.id, _SESSIONS.c.site_id, _SESSIONS.c.owner_key, _SESSIONS.c.filter, _SESSIONS.c.model_id,
-    _SESSIONS.c.status, _SESSIONS.c.created_at, _SESSIONS.c.last_seq, _SESSIONS.c.track_length,
-    _ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance, _ESTIMATES.c.source,
+    _SESSIONS.c.status, _SESSIONS.c.created_at, _SESSIONS.c.last_seq, _SESSIONS.c.track_length, *_ESTIMATE_COLUMNS,
 )
 
 
@@ -138,7 +147,7 @@ def list_sessions(
     return [
         SessionInfo(
             id=sid, site_id=site, owner_key=owner, filter=filter, model_id=model_id, status=st,
-            estimate=None if x is None else Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source),
+            estimate=None if x is None else _estimate(t, x, y, floor, c, source),
             created_at=created_at, last_seq=last_seq, track_length=track_length,
         )
         for sid, site, owner, filter, model_id, st, created_at, last_seq, track_length, t, x, y, floor, c, source
@@ -155,27 +164,21 @@ def get_session(s: Session, session_id: str) -> SessionInfo | None:
 
 def track(s: Session, session_id: str) -> list[Estimate]:
     rows = s.execute(
-        select(_ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance,
-               _ESTIMATES.c.source)
-        .where(_ESTIMATES.c.session_id == session_id)
-        .order_by(_ESTIMATES.c.idx)
+        select(*_ESTIMATE_COLUMNS).where(_ESTIMATES.c.session_id == session_id).order_by(_ESTIMATES.c.idx)
     )
-    return [Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source)
-            for t, x, y, floor, c, source in tuples(rows)]
+    return [_estimate(*row) for row in tuples(rows)]
 
 
 def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:
     """(idx, estimate) of the session's track after index ``after_idx``, at most ``limit``, in order:
     what a live stream has not sent yet (any process may have written them)."""
     rows = s.execute(
-        select(_ESTIMATES.c.idx, _ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor,
-               _ESTIMATES.c.covariance, _ESTIMATES.c.source)
+        select(_ESTIMATES.c.idx, *_ESTIMATE_COLUMNS)
         .where(_ESTIMATES.c.session_id == session_id, _ESTIMATES.c.idx > after_idx)
         .order_by(_ESTIMATES.c.idx)
         .limit(limit)
     )
-    return [(idx, Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source))
-            for idx, t, x, y, floor, c, source in tuples(rows)]
+    return [(row[0], _estimate(*row[1:])) for row in tuples(rows)]
 
 
 def batch_seq_range(s: Session, session_id: str, first_idx: int, last_idx: int) -> tuple[int, int] | None:
