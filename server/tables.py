@@ -78,20 +78,24 @@ class Site(Base):
     revision: Mapped[str] = mapped_column(String(32), default=new_revision, server_default="")
 
     floors: Mapped[list[Floor]] = relationship(
-        back_populates="site", order_by="Floor.level", cascade="all, delete-orphan", passive_deletes=True
+        back_populates="site", order_by="(Floor.building, Floor.level)", cascade="all, delete-orphan", passive_deletes=True
     )
 
 
 class Floor(Base):
+    """A floor of a site: a (building, level) pair (0008; v1 sites are building 0)."""
+
     __tablename__ = "floors"
-    __table_args__ = (UniqueConstraint("site_id", "level"),)
+    __table_args__ = (UniqueConstraint("site_id", "building", "level", name="uq_floors_site_building_level"),)
     id: Mapped[int] = mapped_column(primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    building: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     level: Mapped[int] = mapped_column(Integer)
     name: Mapped[str | None] = mapped_column(String(200))
     width_m: Mapped[float | None] = mapped_column(Float)
     height_m: Mapped[float | None] = mapped_column(Float)
     walls: Mapped[list[Any]] = mapped_column(default=list)  # [[x1, y1, x2, y2], ...]
+    walkable: Mapped[list[Any] | None] = mapped_column()  # polygons: [[[x, y], ...], ...] in site metres
 
     site: Mapped[Site] = relationship(back_populates="floors")
 
@@ -105,6 +109,7 @@ class Transmitter(Base):
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
     tx_id: Mapped[str] = mapped_column(String(120))
     kind: Mapped[str] = mapped_column(String(10))
+    building: Mapped[int | None] = mapped_column(Integer)  # set whenever floor is
     floor: Mapped[int | None] = mapped_column(Integer)
     x: Mapped[float | None] = mapped_column(Float)
     y: Mapped[float | None] = mapped_column(Float)
@@ -113,12 +118,15 @@ class Transmitter(Base):
 
 
 class ReferencePoint(Base):
-    """A surveyed spot: fingerprints with the same (floor, label), or (floor, x, y), share one."""
+    """A surveyed spot: fingerprints with the same (building, floor, label), or (building, floor,
+    x, y), share one."""
 
     __tablename__ = "reference_points"
-    __table_args__ = (UniqueConstraint("site_id", "floor", "key"),)
+    __table_args__ = (UniqueConstraint("site_id", "building", "floor", "key",
+                                       name="uq_reference_points_site_building_floor_key"),)
     id: Mapped[int] = mapped_column(primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"))
+    building: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     floor: Mapped[int] = mapped_column(Integer)
     key: Mapped[str] = mapped_column(String(240))  # "label:<label>" or "xy:<x>,<y>"
     label: Mapped[str | None] = mapped_column(String(200))
@@ -155,6 +163,7 @@ class Fingerprint(Base):
         ForeignKey("reference_points.id", ondelete="CASCADE"), index=True
     )
     upload_id: Mapped[int | None] = mapped_column(ForeignKey("survey_uploads.id", ondelete="CASCADE"))
+    building: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     floor: Mapped[int] = mapped_column(Integer)
     x: Mapped[float] = mapped_column(Float)
     y: Mapped[float] = mapped_column(Float)
@@ -208,7 +217,8 @@ class TrackingSession(Base):
     """A walking session; its tracker state is stored so any server process can serve it."""
 
     __tablename__ = "tracking_sessions"
-    __table_args__ = (Index("ix_tracking_sessions_owner_created", "owner_key", "created_at"),)
+    __table_args__ = (Index("ix_tracking_sessions_owner_created", "owner_key", "created_at"),
+                      Index("ix_tracking_sessions_created_id", "created_at", "id"))
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
     site_id: Mapped[int] = mapped_column(ForeignKey("sites.id", ondelete="CASCADE"), index=True)
     owner_key: Mapped[str] = mapped_column(String(64))  # hash of the key that opened it
@@ -247,6 +257,7 @@ class TrackEstimate(Base):
     t: Mapped[float | None] = mapped_column(Float)
     x: Mapped[float] = mapped_column(Float)
     y: Mapped[float] = mapped_column(Float)
+    building: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     floor: Mapped[int] = mapped_column(Integer)
     covariance: Mapped[list[Any]] = mapped_column()
     source: Mapped[str] = mapped_column(String(10))  # "step" | "scan" | "init"

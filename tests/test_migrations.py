@@ -131,3 +131,82 @@ def _rows(url: str, *tables: str) -> dict[str, list[tuple]]:
         rows = {t: [tuple(r) for r in conn.exec_driver_sql(f"SELECT * FROM {t} ORDER BY 1").all()] for t in tables}
     engine.dispose()
     return rows
+
+
+def _scratch_url(tmp_path, name: str) -> str:
+    """A fresh empty database: SQLite in tmp_path, or a PostgreSQL database beside the test one."""
+    import os
+
+    from sqlalchemy import text
+    from sqlalchemy.engine import make_url
+
+    from tests.conftest import _ensure_postgres_database
+
+    url = os.environ.get("LOCALIZER_TEST_DATABASE_URL")
+    if not url:
+        return f"sqlite:///{tmp_path / f'{name}.db'}"
+    url = make_url(url).set(database=f"{make_url(url).database}_{name}").render_as_string(hide_password=False)
+    _ensure_postgres_database(url)
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("DROP SCHEMA public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    engine.dispose()
+    return url
+
+
+def test_buildings_migration_keeps_v1_rows_in_building_0(tmp_path):
+    """0008 puts every existing floor, reference point, fingerprint, located transmitter and track
+    estimate in building 0 (a transmitter without a floor keeps no building), after which a site may
+    hold the same level in two buildings but not twice in one; it downgrades and upgrades again."""
+    import pytest
+    from sqlalchemy.exc import IntegrityError
+
+    url = _scratch_url(tmp_path, "buildings")
+    migrate.upgrade(url, "0007_models_autoincrement")
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("INSERT INTO sites (id, name, settings, created_at, revision) "
+                             "VALUES (1, 'a', '{}', '2026-01-01', 'r')")
+        conn.exec_driver_sql("INSERT INTO floors (id, site_id, level, walls) VALUES (1, 1, 0, '[]'), (2, 1, 1, '[]')")
+        conn.exec_driver_sql("INSERT INTO transmitters (site_id, tx_id, kind, floor, x, y) "
+                             "VALUES (1, 'ap1', 'wifi', 1, 2.0, 3.0), (1, 'ap2', 'wifi', NULL, NULL, NULL)")
+        conn.exec_driver_sql("INSERT INTO reference_points (id, site_id, floor, key, x, y) "
+                             "VALUES (1, 1, 0, 'xy:1,2', 1.0, 2.0)")
+        conn.exec_driver_sql("INSERT INTO fingerprints (site_id, source, reference_point_id, floor, x, y, rss, "
+                             "samples, created_at) VALUES (1, 'survey', 1, 0, 1.0, 2.0, '{\"ap1\": -60}', 1, "
+                             "'2026-01-01')")
+        conn.exec_driver_sql("INSERT INTO tracking_sessions (id, site_id, owner_key, filter, status, last_seq, "
+                             "created_at, track_length) VALUES ('s1', 1, 'k', 'kf', 'open', 0, '2026-01-01', 1)")
+        conn.exec_driver_sql("INSERT INTO track_estimates (session_id, idx, x, y, floor, covariance, source) "
+                             "VALUES ('s1', 0, 1.0, 2.0, 0, '[]', 'init')")
+    before = _rows(url, "floors", "reference_points", "fingerprints", "transmitters", "track_estimates")
+
+    migrate.upgrade(url)
+    with engine.begin() as conn:
+        for table in ("floors", "reference_points", "fingerprints", "track_estimates"):
+            assert conn.exec_driver_sql(f"SELECT DISTINCT building FROM {table}").scalars().all() == [0], table
+        assert conn.exec_driver_sql("SELECT tx_id, building FROM transmitters ORDER BY tx_id").all() == [
+            ("ap1", 0), ("ap2", None)]
+        assert conn.exec_driver_sql("SELECT walkable FROM floors").scalars().all() == [None, None]
+        conn.exec_driver_sql("INSERT INTO floors (id, site_id, building, level, walls) VALUES (3, 1, 1, 0, '[]')")
+        conn.exec_driver_sql("INSERT INTO reference_points (id, site_id, building, floor, key, x, y) "
+                             "VALUES (2, 1, 1, 0, 'xy:1,2', 1.0, 2.0)")
+        with pytest.raises(IntegrityError), conn.begin_nested():
+            conn.exec_driver_sql("INSERT INTO floors (id, site_id, building, level, walls) VALUES (4, 1, 1, 0, '[]')")
+        with pytest.raises(IntegrityError), conn.begin_nested():
+            conn.exec_driver_sql("INSERT INTO reference_points (id, site_id, building, floor, key, x, y) "
+                                 "VALUES (3, 1, 0, 0, 'xy:1,2', 5.0, 5.0)")
+        names = {ix["name"] for ix in inspect(conn).get_indexes("tracking_sessions")}
+        assert "ix_tracking_sessions_created_id" in names
+        conn.exec_driver_sql("DELETE FROM reference_points WHERE building = 1")
+        conn.exec_driver_sql("DELETE FROM floors WHERE building = 1")
+    engine.dispose()
+
+    migrate.downgrade(url, "0007_models_autoincrement")
+    assert _rows(url, "floors", "reference_points", "fingerprints", "transmitters", "track_estimates") == before
+    migrate.upgrade(url)
+    engine = create_engine(url)
+    with engine.connect() as conn:
+        assert compare_metadata(MigrationContext.configure(conn), Base.metadata) == []
+    engine.dispose()
