@@ -76,3 +76,62 @@ def test_pf_range_update_gated_and_wall_side():
     assert t.update_range([0, 0], 3.5, 0.5) is False
     assert t.update_range([0, 0], 0.5, 0.2, on_wall=[-5, 0, 5, 0]) is True
     assert np.all(t.particles[np.abs(t.particles[:, 0]) <= 5, 1] > 0)
+
+
+# -- floor plans: walkable space ---------------------------------------------------------------
+# A 40 × 10 m floor whose north half between x = 10 and 30 is a closed room (an obstacle: no door),
+# so the corridor along y ≈ 2 is the only way east.
+CORRIDOR_PLAN = {"type": "FeatureCollection", "features": [
+    {"type": "Feature", "properties": {"type": "floor"},
+     "geometry": {"type": "Polygon", "coordinates": [[[0, 0], [40, 0], [40, 10], [0, 10], [0, 0]]]}},
+    {"type": "Feature", "properties": {},
+     "geometry": {"type": "Polygon", "coordinates": [[[10, 5], [30, 5], [30, 10], [10, 10], [10, 5]]]}}]}
+
+
+def _corridor():
+    from server.estimation.floorplan import Transform, Walkable, read_plan
+
+    plan = read_plan(CORRIDOR_PLAN, Transform(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))))
+    return plan, Walkable(plan.walkable)
+
+
+@pytest.mark.parametrize("name", ["pf", "pf-xy"])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_pf_with_the_plan_never_ends_in_the_room_it_cannot_reach(name, seed):
+    """East along the corridor with a PDR heading biased 14° north: dead reckoning (and the PF
+    without the plan) ends inside the room; with the plan no particle is ever in it."""
+    plan, area = _corridor()
+    walk = [Step(k, 0.7, 90.0 - 14.0, length_std_m=0.1, heading_std_deg=3.0) for k in range(40)]  # 28 m east
+    room = np.array([[10.0, 5.0], [30.0, 10.0]])
+
+    def in_room(p):
+        return (p[..., 0] > room[0, 0]) & (p[..., 0] < room[1, 0]) & (p[..., 1] > room[0, 1])
+
+    free = make_tracker(name, [2.0, 2.0], np.eye(2) * 0.05, seed=seed)
+    for s in walk:
+        free.predict(s)
+    assert in_room(free.mean)  # the test's walk does reach the room without a plan
+
+    t = make_tracker(name, [2.0, 2.0], np.eye(2) * 0.05, walls=plan.walls, seed=seed)
+    t.set_walkable(area)
+    for s in walk:
+        t.predict(s)
+        assert not in_room(t.particles[:, :2]).any()
+        assert area.contains(t.particles[:, :2]).all()
+    assert not in_room(t.mean) and t.mean[0] > 20.0
+
+
+def test_pf_redraws_around_the_last_estimate_when_every_particle_would_die():
+    """Walking into the end of a dead end: every particle would leave walkable space; the cloud is
+    redrawn around the estimate before the step, inside walkable space only."""
+    from server.estimation.floorplan import Walkable
+
+    area = Walkable([[[0, 0], [10, 0], [10, 2], [0, 2], [0, 0]]])
+    t = make_tracker("pf", [9.5, 1.0], np.eye(2) * 0.01, seed=5, q=0.0)
+    t.set_walkable(area)
+    before = t.mean.copy()
+    t.predict(Step(0, 2.0, 90.0, length_std_m=0.0, heading_std_deg=0.0))  # 2 m east: beyond x = 10
+    assert area.contains(t.particles[:, :2]).all()
+    assert np.linalg.norm(t.mean - before) < 2.0  # within a step of where it was
+    np.testing.assert_allclose(t.weights, 1e-3)
+    assert t.particles.shape == (1000, 4)

@@ -10,31 +10,35 @@ import numpy as np
 _EPS = 1e-12
 
 
-def crosses_walls(start: np.ndarray, end: np.ndarray, walls: np.ndarray) -> np.ndarray:
-    """For moves start[i] → end[i] (arrays (n, 2)), whether each move crosses any wall.
+def segments_cross(start: np.ndarray, end: np.ndarray, walls: np.ndarray) -> np.ndarray:
+    """Whether the move start → end crosses the wall [x1, y1, x2, y2], element by element
+    (arrays (..., 2), (..., 2) and (..., 4) that broadcast together).
 
     Touching a wall at an end point counts as crossing; moves parallel to (and
     overlapping) a wall do not.
     """
-    start = np.atleast_2d(start)
-    end = np.atleast_2d(end)
-    n = start.shape[0]
-    if walls.shape[0] == 0:
-        return np.zeros(n, dtype=bool)
-    p = start[:, None, :]  # (n, 1, 2)
-    r = (end - start)[:, None, :]  # (n, 1, 2)
-    q = walls[None, :, 0:2]  # (1, w, 2)
-    s = walls[None, :, 2:4] - walls[None, :, 0:2]  # (1, w, 2)
-    denom = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]  # (n, w)
-    qp = q - p
+    r = end - start
+    q = walls[..., 0:2]
+    s = walls[..., 2:4] - q
+    denom = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]
+    qp = q - start
     t_num = qp[..., 0] * s[..., 1] - qp[..., 1] * s[..., 0]
     u_num = qp[..., 0] * r[..., 1] - qp[..., 1] * r[..., 0]
     ok = np.abs(denom) > _EPS
     safe = np.where(ok, denom, 1.0)
     t = t_num / safe
     u = u_num / safe
-    hit = ok & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1)
-    return hit.any(axis=1)
+    return np.asarray(ok & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1))
+
+
+def crosses_walls(start: np.ndarray, end: np.ndarray, walls: np.ndarray) -> np.ndarray:
+    """For moves start[i] → end[i] (arrays (n, 2)), whether each move crosses any wall
+    (``segments_cross`` against every wall; ``floorplan.WallIndex`` for many walls)."""
+    start = np.atleast_2d(start)
+    end = np.atleast_2d(end)
+    if walls.shape[0] == 0:
+        return np.zeros(start.shape[0], dtype=bool)
+    return np.asarray(segments_cross(start[:, None, :], end[:, None, :], walls[None, :, :]).any(axis=1))
 
 
 def crosses_any(start, end, walls: np.ndarray) -> bool:

@@ -6,10 +6,17 @@ particles that survive the fixes are those whose calibration explains the walk.
 ``pf-xy`` is the two-state seed form described here.
 
 Prediction samples each particle's own step: d_i ~ N(d, σd²), h_i ~ N(h, σh²), plus a
-small isotropic jitter (q m² per step). A particle whose move crosses a wall dies
-(weight 0) and the set is resampled at once, so no particle survives on the far side
-of a wall. (If every particle would die — the plan disagrees with the walker — the
-step is applied without the wall test rather than losing the track.)
+small isotropic jitter (q m² per step). A particle whose move crosses a wall, or that ends
+outside the floor's walkable area when the session gave one (``set_walkable``, from the
+site's floor plan; not stored, the session sets it before every input), dies (weight 0)
+and the set is resampled at once, so no particle survives on the far side of a wall or
+inside an obstacle. If every particle would die (the plan disagrees with the walker, or
+the PDR drove the whole cloud into a wall): with a walkable area the cloud is redrawn
+around the last good estimate — positions from N(m, P + d²·I), m and P the estimate
+before the step and d the step length, keeping only draws inside the walkable area (the
+calibration columns resampled from the old particles by weight); without one, or when no
+draw lands inside, the step is applied without the test rather than losing the track.
+Many walls (a real plan) are tested through ``floorplan.WallIndex``.
 Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
 fix.covariance, and resamples when N_eff < resample_threshold·N.
 Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()``.
@@ -21,6 +28,7 @@ import math
 
 import numpy as np
 
+from server.estimation.floorplan import INDEX_FROM_WALLS, Walkable, WallIndex
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
@@ -60,6 +68,9 @@ class ParticleFilterXYTracker(Tracker):
             "max_range_m": float(max_range_m),
         }
         self.rng = make_rng(seed)
+        #: the floor's walkable area (None: unconstrained); set by the session, not stored
+        self.walkable: Walkable | None = None
+        self._wall_index: WallIndex | None = None
         self.reset(initial_mean, initial_cov)
 
     # -- filter -------------------------------------------------------------------
@@ -69,13 +80,7 @@ class ParticleFilterXYTracker(Tracker):
         h = math.radians(step.heading_deg) + math.radians(step.heading_std_deg) * self.rng.standard_normal(n)
         move = np.column_stack((d * np.sin(h), d * np.cos(h)))
         move += math.sqrt(self.params["q"]) * self.rng.standard_normal((n, 2))
-        moved = self.particles + move
-        dead = crosses_walls(self.particles, moved, self.walls)
-        self.particles = moved
-        if dead.any() and not dead.all():
-            self.weights[dead] = 0.0
-            self.weights /= self.weights.sum()
-            self._resample()
+        self._settle(self.particles + move, step.length_m)
 
     def update(self, fix: Fix) -> None:
         R = fix_cov(fix.covariance)
@@ -93,6 +98,61 @@ class ParticleFilterXYTracker(Tracker):
         if constraint is not None:
             loglik = np.where(on_wrong_side(self.particles[:, :2], constraint.wall, constraint.side), -np.inf, loglik)
         return self._reweight(loglik)
+
+    # -- the floor plan -----------------------------------------------------------------
+    def set_walls(self, walls) -> None:
+        super().set_walls(walls)
+        self._wall_index = None
+
+    def set_walkable(self, walkable: Walkable | None) -> None:
+        """The floor's walkable area for the next steps (None: no constraint)."""
+        self.walkable = walkable
+
+    def _crosses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+        if len(self.walls) < INDEX_FROM_WALLS:
+            return crosses_walls(start, end, self.walls)
+        if self._wall_index is None:
+            self._wall_index = WallIndex(self.walls)
+        return self._wall_index.crosses(start, end)
+
+    def _settle(self, moved: np.ndarray, step_m: float) -> None:
+        """Move the particles to ``moved`` (same columns), killing those whose move crosses a
+        wall or ends outside the walkable area; the rule when all would die is the module's."""
+        old = self.particles
+        dead = self._crosses(old[:, :2], moved[:, :2])
+        if self.walkable is not None:
+            dead |= ~self.walkable.contains(moved[:, :2])
+        self.particles = moved
+        if not dead.any():
+            return
+        if not dead.all():
+            self.weights[dead] = 0.0
+            self.weights /= self.weights.sum()
+            self._resample()
+            return
+        if self.walkable is not None:
+            redrawn = self._redraw(old, step_m)
+            if redrawn is not None:
+                self.particles = redrawn
+                self.weights = np.full(self.params["n_particles"], 1.0 / self.params["n_particles"])
+
+    def _redraw(self, old: np.ndarray, step_m: float, tries: int = 4) -> np.ndarray | None:
+        """n particles around the weighted mean of ``old`` (spread its covariance + step_m²·I),
+        only inside the walkable area; None when no draw lands there."""
+        assert self.walkable is not None
+        n = self.params["n_particles"]
+        m = self.weights @ old[:, :2]
+        diff = old[:, :2] - m
+        P = (diff * self.weights[:, None]).T @ diff + (step_m**2 + self.params["q"]) * np.eye(2)
+        L = np.linalg.cholesky(0.5 * (P + P.T) + 1e-9 * np.eye(2))
+        draws = m + self.rng.standard_normal((tries * n, 2)) @ L.T
+        inside = draws[self.walkable.contains(draws)]
+        if len(inside) == 0:
+            return None
+        pick = inside[:n] if len(inside) >= n else inside[self.rng.integers(len(inside), size=n)]
+        out = old[systematic_resample(self.weights, float(self.rng.random()))].copy()
+        out[:, :2] = pick
+        return out
 
     def _reweight(self, loglik: np.ndarray) -> bool:
         with np.errstate(divide="ignore"):
@@ -155,8 +215,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     """Self-calibrating PF: particles [x, y, b, s].
 
     Prediction per particle: b_i += N(0, σb²), s_i += N(0, σs²) (kept in range), then its
-    step d_i = s_i·(d + σd·ε), h_i = h + b_i + σh·ε, plus the q jitter; walls kill as in the
-    seed form. At the start b_i ~ N(0, σb0²), s_i ~ N(1, σs0²). A ``reset`` (snap, floor
+    step d_i = s_i·(d + σd·ε), h_i = h + b_i + σh·ε, plus the q jitter; walls and the walkable
+    area kill as in the seed form. At the start b_i ~ N(0, σb0²), s_i ~ N(1, σs0²). A ``reset`` (snap, floor
     change) redraws the positions and keeps each particle's calibration. Updates weigh
     the positions only (inherited)."""
 
@@ -195,12 +255,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         moved[:, 0] += d * np.sin(h)
         moved[:, 1] += d * np.cos(h)
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
-        dead = crosses_walls(P[:, :2], moved[:, :2], self.walls)
-        self.particles = moved
-        if dead.any() and not dead.all():
-            self.weights[dead] = 0.0
-            self.weights /= self.weights.sum()
-            self._resample()
+        self._settle(moved, step.length_m)
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
