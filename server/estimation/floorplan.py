@@ -22,8 +22,8 @@ features; without an outline, every polygon's boundary is a wall.
 Stored form of a walkable area: a list of rings ``[[x, y], ...]``; a point is walkable when
 it lies inside an odd number of them (even-odd rule: a hole is a ring inside a ring), so a
 multipolygon with holes is plain lists. ``Walkable`` answers point-in-area for many points
-at once (prepared shapely geometry), ``WallIndex`` which moves cross a wall (an STRtree over
-the segments' boxes, then the exact test on the few candidate pairs).
+at once and ``WallIndex`` which moves cross a wall, both through a grid of cells so that a
+PF step over 1,000 particles tests only what is near them (``benchmarks/floorplan_cost.py``).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ import numpy as np
 import shapely
 from shapely.geometry.base import BaseGeometry
 
-from server.estimation.tracking.geometry import segments_cross
+from server.estimation.tracking.geometry import crosses_walls, segments_cross
 
 #: the most vertices a plan may have (the MSFT site-1 F1 plan has 1,182)
 MAX_VERTICES = 200_000
@@ -274,27 +274,87 @@ def even_odd(rings: Sequence[Sequence[Sequence[float]]]) -> BaseGeometry:
     return _polygonal(shapely.union_all(shells))
 
 
-class Walkable:
-    """A walkable area from its rings (even-odd rule), for point-in-area tests of many points."""
+class _Grid:
+    """Square cells of ``cell_m`` over a box: a point's cell index, −1 outside the box."""
 
-    def __init__(self, rings: Sequence[Sequence[Sequence[float]]]):
+    def __init__(self, bounds: Sequence[float], cell_m: float):
+        x0, y0, x1, y1 = (float(v) for v in bounds)
+        self.origin = np.array([x0, y0])
+        self.cell = float(cell_m)
+        self.nx = max(int(math.ceil((x1 - x0) / self.cell)), 1)
+        self.ny = max(int(math.ceil((y1 - y0) / self.cell)), 1)
+
+    def ij(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Column and row of each point (not clipped)."""
+        k = np.floor((xy - self.origin) / self.cell).astype(np.int64)
+        return k[:, 0], k[:, 1]
+
+    def cell_of(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        ok = (i >= 0) & (i < self.nx) & (j >= 0) & (j < self.ny)
+        return np.where(ok, j * self.nx + i, -1)
+
+    def boxes(self) -> np.ndarray:
+        i, j = np.meshgrid(np.arange(self.nx), np.arange(self.ny))
+        x0 = self.origin[0] + i.ravel() * self.cell
+        y0 = self.origin[1] + j.ravel() * self.cell
+        return shapely.box(x0, y0, x0 + self.cell, y0 + self.cell)
+
+
+class Walkable:
+    """A walkable area from its rings (even-odd rule), for point-in-area tests of many points.
+
+    A grid of ``cell_m`` cells, each known to be inside, outside or on the boundary, answers
+    most points by a lookup; only points in boundary cells get the exact (shapely) test."""
+
+    INSIDE, OUTSIDE, EDGE = 1, 0, 2
+
+    def __init__(self, rings: Sequence[Sequence[Sequence[float]]], cell_m: float = 2.0):
         self.geometry = even_odd(rings)
         shapely.prepare(self.geometry)
+        self._grid = _Grid(self.geometry.bounds, cell_m)
+        boxes = self._grid.boxes()
+        self._cells = np.where(shapely.contains_properly(self.geometry, boxes), self.INSIDE,
+                               np.where(shapely.intersects(self.geometry, boxes), self.EDGE, self.OUTSIDE)).astype(np.int8)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         """For points (n, 2): whether each is inside (on the boundary counts as inside)."""
         p = np.asarray(points, float).reshape(-1, 2)
-        return shapely.intersects_xy(self.geometry, p[:, 0], p[:, 1])
+        cell = self._grid.cell_of(*self._grid.ij(p))
+        kind = np.where(cell >= 0, self._cells[np.maximum(cell, 0)], self.OUTSIDE)
+        out = kind == self.INSIDE
+        edge = np.flatnonzero(kind == self.EDGE)
+        if len(edge):
+            out[edge] = shapely.intersects_xy(self.geometry, p[edge, 0], p[edge, 1])
+        return out
 
 
 class WallIndex:
-    """Which moves cross a wall, for many walls: candidates from an STRtree over the
-    segments (their boxes overlap the move's), then ``segments_cross`` on the candidate pairs only (the same rule as
-    ``tracking.geometry.crosses_walls``: touching a wall counts, sliding along one does not)."""
+    """Which moves cross a wall, for many walls: a grid of ``cell_m`` cells lists the walls whose
+    box meets each cell; a move shorter than a cell meets at most 2 × 2 cells, and
+    ``segments_cross`` runs on the walls listed there only (the same rule as
+    ``tracking.geometry.crosses_walls``: touching a wall counts, sliding along one does not).
+    Longer moves are tested against every wall."""
 
-    def __init__(self, walls: np.ndarray):
+    def __init__(self, walls: np.ndarray, cell_m: float = 2.0):
         self.walls = np.asarray(walls, float).reshape(-1, 4)
-        self._tree = shapely.STRtree(shapely.linestrings(self.walls.reshape(-1, 2, 2)))
+        w = self.walls
+        lo = np.minimum(w[:, :2], w[:, 2:])
+        hi = np.maximum(w[:, :2], w[:, 2:])
+        bounds = [*lo.min(axis=0), *hi.max(axis=0)] if len(w) else [0.0, 0.0, 1.0, 1.0]
+        self._grid = g = _Grid(bounds, cell_m)
+        i0, j0 = g.ij(lo)
+        i1, j1 = g.ij(hi)
+        i0, j0 = np.clip(i0, 0, g.nx - 1), np.clip(j0, 0, g.ny - 1)
+        i1, j1 = np.clip(i1, 0, g.nx - 1), np.clip(j1, 0, g.ny - 1)
+        cells, ids = [], []
+        for k in range(len(w)):  # once per plan
+            ii, jj = np.meshgrid(np.arange(i0[k], i1[k] + 1), np.arange(j0[k], j1[k] + 1))
+            cells.append((jj * g.nx + ii).ravel())
+            ids.append(np.full(ii.size, k))
+        cell = np.concatenate(cells) if cells else np.zeros(0, np.int64)
+        order = np.argsort(cell, kind="stable")
+        self._wall_ids = (np.concatenate(ids) if ids else np.zeros(0, np.int64))[order]
+        self._ptr = np.searchsorted(cell[order], np.arange(g.nx * g.ny + 1))
 
     def crosses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         start = np.asarray(start, float).reshape(-1, 2)
@@ -302,8 +362,29 @@ class WallIndex:
         hit = np.zeros(len(start), dtype=bool)
         if len(self.walls) == 0 or len(start) == 0:
             return hit
-        move, wall = self._tree.query(shapely.linestrings(np.stack([start, end], axis=1)))
-        if len(move):
-            cross = segments_cross(start[move], end[move], self.walls[wall])
-            hit[move[cross]] = True
+        g = self._grid
+        i0, j0 = g.ij(np.minimum(start, end))
+        i1, j1 = g.ij(np.maximum(start, end))
+        long = (i1 - i0 > 1) | (j1 - j0 > 1)
+        if long.any():
+            hit[long] = crosses_walls(start[long], end[long], self.walls)
+        moves, cells = [], []
+        for di in (0, 1):
+            for dj in (0, 1):
+                ok = ~long & (i0 + di <= i1) & (j0 + dj <= j1)
+                c = g.cell_of(i0 + di, j0 + dj)
+                ok &= c >= 0
+                moves.append(np.flatnonzero(ok))
+                cells.append(c[ok])
+        move = np.concatenate(moves)
+        cell = np.concatenate(cells)
+        count = self._ptr[cell + 1] - self._ptr[cell]
+        total = int(count.sum())
+        if total == 0:
+            return hit
+        move = np.repeat(move, count)
+        first = np.repeat(self._ptr[cell] - (np.cumsum(count) - count), count)
+        wall = self._wall_ids[first + np.arange(total)]
+        cross = segments_cross(start[move], end[move], self.walls[wall])
+        hit[move[cross]] = True
         return hit

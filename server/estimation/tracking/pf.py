@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from server.estimation.floorplan import INDEX_FROM_WALLS, Walkable, WallIndex
+from server.estimation import floorplan  # (a module: floorplan imports tracking.geometry)
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
@@ -69,8 +69,8 @@ class ParticleFilterXYTracker(Tracker):
         }
         self.rng = make_rng(seed)
         #: the floor's walkable area (None: unconstrained); set by the session, not stored
-        self.walkable: Walkable | None = None
-        self._wall_index: WallIndex | None = None
+        self.walkable: floorplan.Walkable | None = None
+        self._wall_index: floorplan.WallIndex | None = None
         self.reset(initial_mean, initial_cov)
 
     # -- filter -------------------------------------------------------------------
@@ -104,15 +104,15 @@ class ParticleFilterXYTracker(Tracker):
         super().set_walls(walls)
         self._wall_index = None
 
-    def set_walkable(self, walkable: Walkable | None) -> None:
+    def set_walkable(self, walkable: floorplan.Walkable | None) -> None:
         """The floor's walkable area for the next steps (None: no constraint)."""
         self.walkable = walkable
 
     def _crosses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-        if len(self.walls) < INDEX_FROM_WALLS:
+        if len(self.walls) < floorplan.INDEX_FROM_WALLS:
             return crosses_walls(start, end, self.walls)
         if self._wall_index is None:
-            self._wall_index = WallIndex(self.walls)
+            self._wall_index = floorplan.WallIndex(self.walls)
         return self._wall_index.crosses(start, end)
 
     def _settle(self, moved: np.ndarray, step_m: float) -> None:
