@@ -24,7 +24,7 @@ from client_sim.msft import read_walk  # noqa: E402
 from client_sim.msft_eval import walk_files  # noqa: E402
 from server.estimation import floorplan as floorplan_module  # noqa: E402
 from server.estimation.floorplan import Walkable, read_plan  # noqa: E402
-from server.estimation.tracking import make_tracker, tracker_from_dict  # noqa: E402
+from server.estimation.tracking import ParticleFilterXYTracker, make_tracker, tracker_from_dict  # noqa: E402
 from server.estimation.types import Step  # noqa: E402
 
 
@@ -47,6 +47,7 @@ def fit(data: Path, plan, area: Walkable) -> dict:
     outline = read_plan({"type": "FeatureCollection", "features": [f for f in g["features"]
                                                                    if f["properties"].get("type") == "floor"]},
                         bbox_size=(info["width"], info["height"]))
+    assert outline.walkable is not None
     in_floor = Walkable(outline.walkable).contains(pts)
     inside = area.contains(pts)
     dense = np.vstack([w.truth_at(np.linspace(w.t_start, w.t_end, 200)) for w in walks])
@@ -65,6 +66,7 @@ def main() -> None:
     info = json.loads((a.data / "floor_info.json").read_text())["map_info"]
     t0 = time.perf_counter()
     plan = read_plan(json.loads((a.data / "geojson_map.json").read_text()), bbox_size=(info["width"], info["height"]))
+    assert plan.walkable is not None
     area = Walkable(plan.walkable)
     build_ms = (time.perf_counter() - t0) * 1e3
     print(f"plan: {len(plan.walls)} walls, {len(plan.walkable or [])} walkable rings, area {area.geometry.area:.0f} m²; "
@@ -80,6 +82,7 @@ def main() -> None:
                                           ("walls, index", plan.walls, None, True),
                                           ("walls + walkable, index", plan.walls, area, True)]:
         t = make_tracker("pf", start, np.eye(2), walls=walls, seed=0)
+        assert isinstance(t, ParticleFilterXYTracker)
         t.set_walkable(walkable)
         threshold = floorplan_module.INDEX_FROM_WALLS
         floorplan_module.INDEX_FROM_WALLS = threshold if index else 10**9
