@@ -3,8 +3,9 @@
 A `TrainingWorker` thread claims queued jobs from the database (a compare-and-set, so
 several server processes can each run a worker) and runs each in a child process, so
 a long fit never holds the request-serving process's interpreter (GIL) or memory. The child loads the
-site's fingerprints, measures the model on held-out data, refits on everything, and
-stores the artifact, its SHA-256 and the metrics in one transaction. The first model
+site's fingerprints, measures the model on a bounded held-out sample (and calibrates
+its covariance there), refits on everything, and stores the artifact, its SHA-256 and
+the metrics in one transaction. The first model
 of a site that becomes ready is activated in that same transaction.
 """
 
@@ -26,6 +27,7 @@ from sqlalchemy.exc import IntegrityError
 from server.db import Database
 from server.domain import FingerprintRecord, ModelSpec, Transmitter
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
+from server.estimation.fingerprint.metrics import Validation
 from server.store import models as store
 from server.store import sites as site_store
 from server.store import surveys as survey_store
@@ -95,10 +97,35 @@ def _fit(rows: list[FingerprintRecord], spec: ModelSpec, transmitters: list[Tran
         return factory().fit(None), None
     if len(fs) < MIN_FINGERPRINTS_FOR_VALIDATION:
         return factory().fit(fs), None
-    model, metrics = fit_and_validate(factory, fs)
-    figures = {**metrics.as_api_dict(), "fit_time_s": metrics.fit_time_s, "validated_on": metrics.n_test,
-               "building_hit_rate": metrics.building_hit_rate, "us_per_query": metrics.single_query_us}
-    return model, {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
+    model, v = fit_and_validate(factory, fs)
+    return model, metrics_record(v)
+
+
+def metrics_record(v: Validation) -> dict[str, Any]:
+    """A model's ``metrics`` JSON: the held-out figures, the covariance calibration with the
+    held-out NIS before and after it, and each held-out reference point's mean error
+    (``points``: [building, floor, x, y, label, n, mean_error_m] rows, bounded by the
+    held-out sample). Non-finite figures are null."""
+    m = v.metrics
+    figures = {**m.as_api_dict(), "fit_time_s": m.fit_time_s, "validated_on": m.n_test,
+               "building_hit_rate": m.building_hit_rate, "us_per_query": m.single_query_us,
+               "held_out": v.split,
+               "calibration": {"scale": v.calibration.scale, "floor_m": v.calibration.floor_m},
+               "nis_raw": {"mean": v.nis_raw.mean, "median": v.nis_raw.median},
+               "nis_calibrated": {"mean": v.nis_calibrated.mean, "median": v.nis_calibrated.median},
+               "points": [[p.building, p.floor, round(p.x, 2), round(p.y, 2), p.label, p.n, round(p.mean_error_m, 2)]
+                          for p in v.points]}
+    return _finite(figures)
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _row(fp: FingerprintRecord) -> dict[str, Any]:

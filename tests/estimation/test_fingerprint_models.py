@@ -75,7 +75,7 @@ def test_fix_is_consistent(name, site, fitted):
     assert isinstance(fix, Fix)
     cov = np.asarray(fix.covariance)
     assert cov.shape == (2, 2) and np.allclose(cov, cov.T)
-    floor2 = model.cov_floor_m_**2 * getattr(model, "cov_scale_", 1.0)  # calibrated models scale it
+    floor2 = model.calibration_.apply(np.diag([model.cov_floor_m_**2] * 2)[None])[0, 0, 0]  # calibrated models scale it
     assert np.all(np.linalg.eigvalsh(cov) >= floor2 - 1e-9)  # floored
     assert fix.candidates, "candidates expected"
     probs = [c.probability for c in fix.candidates]

@@ -32,7 +32,7 @@ MAGIC = b"LOCFP2\n"
 OLD_MAGICS = (b"LOCFP1\n",)
 _DIGEST = 32
 #: Bump whenever a model's fitted state changes shape; older artifacts are then refused.
-LIBRARY_VERSION = "fingerprint-2.0"
+LIBRARY_VERSION = "fingerprint-2.1"
 
 #: Classes an artifact may instantiate (module, qualified name).
 ALLOWED: frozenset[tuple[str, str]] = frozenset({
@@ -44,6 +44,7 @@ ALLOWED: frozenset[tuple[str, str]] = frozenset({
     ("server.estimation.fingerprint.svm", "SVMModel"),
     ("server.estimation.fingerprint.propagation", "PropagationModel"),
     ("server.estimation.fingerprint.dataset", "ReferencePoints"),
+    ("server.estimation.fingerprint.calibration", "CovarianceCalibration"),
     ("server.estimation.fingerprint.features", "RssEncoder"),
     ("server.estimation.fingerprint.distance", "SquaredDistance"),
     ("server.estimation.fingerprint.gaussian", "GaussianRpStats"),

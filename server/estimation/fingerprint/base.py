@@ -24,6 +24,7 @@ import numpy as np
 
 from server.estimation.types import Candidate, Fix
 
+from .calibration import IDENTITY, CovarianceCalibration
 from .dataset import FingerprintSet, ReferencePoints
 from .features import RssEncoder, heading_features
 from .posterior import Prediction, reduce_posterior
@@ -155,6 +156,7 @@ class FingerprintModel:
             self.heading_weight_ = 0.0
         self.n_fingerprints_ = len(fs)
         data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
+        self.calibration_: CovarianceCalibration = IDENTITY  # the training step (or ``_fit``) calibrates
         self._fit(X, H, data)
         self.floor_clf_ = self._fit_floor_classifier(X, H, data.row_group)
         self.fit_time_s_ = time.perf_counter() - t0
@@ -264,14 +266,24 @@ class FingerprintModel:
         return mask
 
     def predict(self, rss, heading_deg=None, *, near=None, radius_m: float | None = None,
-                chunk: int = 256) -> Prediction:
+                chunk: int = 256, calibrated: bool = True) -> Prediction:
         """Vectorised estimate for many scans.
 
         rss: (n, m) matrix in ``tx_ids_`` order (NaN = not heard), a FingerprintSet, or
         a list of ``{tx_id: dBm}``. heading_deg: None, a scalar or (n,) (NaN/None =
         unknown). near/radius_m: restrict to reference points within ``radius_m`` of
         ``near`` = (x, y[, floor]) or a previous Fix (spatial filtering when tracking).
+        calibrated: covariances through ``calibration_`` (False: the model's raw ones,
+        which the calibration is fitted on).
         """
+        pred = self._predict(rss, heading_deg, near=near, radius_m=radius_m, chunk=chunk)
+        cal = getattr(self, "calibration_", IDENTITY)
+        if calibrated and cal != IDENTITY:
+            pred.covariance = cal.apply(pred.covariance)
+        return pred
+
+    def _predict(self, rss, heading_deg, *, near, radius_m, chunk: int) -> Prediction:
+        """`predict` with the model's raw covariance."""
         self._check_fitted()
         R = self._as_matrix(rss)
         n = R.shape[0]

@@ -1,9 +1,14 @@
-"""Held-out evaluation of a fingerprint model.
+"""Held-out evaluation of a fingerprint model, and the training step's validation.
 
 Errors are horizontal Euclidean distances (m) between the estimate and the true
 position, whatever the floor (a wrong floor shows up in ``floor_hit_rate``).
 ``mapping_rate`` is the share of queries whose best reference point is the query's
 own reference point (same (building, floor, label) or (building, floor, x, y)).
+
+`fit_and_validate` (the server's training step) measures a model on a bounded,
+stratified sample of a held-out split (its cost does not grow with the site), fits the
+covariance calibration on those residuals (calibration.py), keeps each held-out
+reference point's mean error (where the radio map is weak), and refits on everything.
 """
 
 from __future__ import annotations
@@ -13,7 +18,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .calibration import CovarianceCalibration, fit_calibration, nis
 from .dataset import FingerprintSet, group_split, random_split
+from .posterior import Prediction
+
+#: held-out scans the training step measures on at most (a stratified sample)
+MAX_HELD_OUT = 2000
 
 
 @dataclass
@@ -43,16 +53,21 @@ class Metrics:
 def evaluate(model, test: FingerprintSet, n_single: int = 200, seed: int = 0) -> Metrics:
     """Metrics of a fitted model on held-out fingerprints ``test`` (NaN figures when no
     test row hears anything, e.g. a split that held out nothing)."""
+    return _measure(model, test, n_single, seed)[0]
+
+
+def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Metrics, FingerprintSet, Prediction | None]:
+    """(Metrics, the test rows measured, their prediction with the raw covariance)."""
     test = test.select_kinds(model.kinds).drop_empty() if model.kinds else test.drop_empty()
     n_train = int(getattr(model, "n_fingerprints_", 0))
     fit_time_s = float(getattr(model, "fit_time_s_", float("nan")))
     if not len(test):
         nan = float("nan")
-        return Metrics(model.name, n_train, 0, nan, nan, nan, nan, nan, nan, fit_time_s, nan, nan)
+        return Metrics(model.name, n_train, 0, nan, nan, nan, nan, nan, nan, fit_time_s, nan, nan), test, None
     R = test.aligned_rss(model.tx_ids_)
     heading = test.heading_deg if model.use_heading else None
     t0 = time.perf_counter()
-    pred = model.predict(R, heading)
+    pred = model.predict(R, heading, calibrated=False)
     batch_s = time.perf_counter() - t0
     err = np.hypot(pred.x - test.x, pred.y - test.y)
     true_keys = test.rp_keys()
@@ -84,7 +99,7 @@ def evaluate(model, test: FingerprintSet, n_single: int = 200, seed: int = 0) ->
         fit_time_s=fit_time_s,
         us_per_query=1e6 * batch_s / len(test),
         single_query_us=1e6 * float(np.median(times)) if times else float("nan"),
-    )
+    ), test, pred
 
 
 def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2, seed: int = 0):
@@ -108,16 +123,94 @@ def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 
     raise ValueError(f"unknown split {how!r}")
 
 
+def stratified_sample(fs: FingerprintSet, cap: int, seed: int = 0) -> FingerprintSet:
+    """At most ``cap`` rows of ``fs``, each (building, floor) keeping its share (at least
+    one row each), drawn at random within it; ``fs`` itself when it is small enough."""
+    n = len(fs)
+    if n <= cap:
+        return fs
+    rng = np.random.default_rng(seed)
+    _, group = np.unique(np.column_stack([fs.building, fs.floor]), axis=0, return_inverse=True)
+    group = np.asarray(group).reshape(-1)
+    counts = np.bincount(group)
+    quota = np.maximum(1, np.floor(counts * cap / n).astype(int))
+    keep = [rng.choice(np.flatnonzero(group == g), size=min(int(q), int(c)), replace=False)
+            for g, (q, c) in enumerate(zip(quota, counts, strict=True))]
+    return fs.subset(np.sort(np.concatenate(keep)))
+
+
+@dataclass(frozen=True)
+class PointError:
+    """One held-out reference point: its mean error over its held-out scans."""
+
+    building: int
+    floor: int
+    x: float
+    y: float
+    label: str
+    n: int
+    mean_error_m: float
+
+
+@dataclass(frozen=True)
+class NisSummary:
+    """Normalised innovation squared of held-out fixes (a calibrated 2-D fix: mean 2, median 1.39)."""
+
+    mean: float
+    median: float
+
+    @staticmethod
+    def of(values: np.ndarray) -> NisSummary:
+        v = values[np.isfinite(values)]
+        return NisSummary(float(np.mean(v)), float(np.median(v))) if len(v) else NisSummary(float("nan"), float("nan"))
+
+
+@dataclass(frozen=True)
+class Validation:
+    """What the training step learns on its held-out sample (the model it returns is refitted on all data)."""
+
+    metrics: Metrics
+    calibration: CovarianceCalibration
+    nis_raw: NisSummary  # the model's own covariance
+    nis_calibrated: NisSummary  # after ``calibration`` (fitted on these same residuals)
+    points: list[PointError]
+    split: str
+
+
+def point_errors(test: FingerprintSet, err: np.ndarray) -> list[PointError]:
+    """Mean error per reference point of ``test`` (its rows' errors ``err``)."""
+    rp = test.reference_points()
+    n = np.bincount(rp.row_rp, minlength=len(rp))
+    total = np.bincount(rp.row_rp, weights=err, minlength=len(rp))
+    return [PointError(int(rp.building[i]), int(rp.floor[i]), float(rp.x[i]), float(rp.y[i]), rp.labels[i],
+                       int(n[i]), float(total[i] / n[i])) for i in range(len(rp)) if n[i]]
+
+
+def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200) -> Validation:
+    """Measure a fitted model on ``test`` (capped at MAX_HELD_OUT rows, stratified by
+    building and floor) and fit its covariance calibration on the residuals."""
+    metrics, test, pred = _measure(model, stratified_sample(test, MAX_HELD_OUT), n_single, 0)
+    if pred is None:
+        nan = NisSummary(float("nan"), float("nan"))
+        return Validation(metrics, CovarianceCalibration(), nan, nan, [], split)
+    r = pred.xy - np.column_stack([test.x, test.y])
+    cal = fit_calibration(r, pred.covariance)
+    return Validation(
+        metrics=metrics, calibration=cal, nis_raw=NisSummary.of(nis(r, pred.covariance)),
+        nis_calibrated=NisSummary.of(nis(r, cal.apply(pred.covariance))),
+        points=point_errors(test, np.hypot(r[:, 0], r[:, 1])), split=split,
+    )
+
+
 def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
-                     seed: int = 0, refit: bool = True):
-    """For the server's training job: fit on a held-out split and measure, then (if
-    ``refit``) fit a fresh model on all of ``fs``. ``model_factory()`` returns an
-    unfitted model. Returns (model, Metrics)."""
-    train, test, _ = holdout_split(fs, how, test_fraction, seed)
-    m = model_factory().fit(train)
-    metrics = evaluate(m, test)
-    if refit:
-        m = model_factory().fit(fs)
-        metrics.fit_time_s = m.fit_time_s_
-        metrics.n_train = m.n_fingerprints_
-    return m, metrics
+                     seed: int = 0):
+    """The server's training step: fit on a held-out split and `validate`, then fit a
+    fresh model on all of ``fs`` carrying the calibration. ``model_factory()`` returns
+    an unfitted model. Returns (model, Validation)."""
+    train, test, split = holdout_split(fs, how, test_fraction, seed)
+    v = validate(model_factory().fit(train), test, split)
+    m = model_factory().fit(fs)
+    m.calibration_ = v.calibration
+    v.metrics.fit_time_s = m.fit_time_s_
+    v.metrics.n_train = m.n_fingerprints_
+    return m, v

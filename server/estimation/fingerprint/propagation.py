@@ -172,7 +172,7 @@ class PropagationModel(FingerprintModel):
             xy, cov = multilaterate(A, r)
         return xy, cov, building, floor
 
-    def predict(self, rss, heading_deg=None, *, near=None, radius_m=None, chunk=256) -> Prediction:
+    def _predict(self, rss, heading_deg, *, near, radius_m, chunk: int) -> Prediction:
         self._check_fitted()
         R = self._as_matrix(rss)
         n = len(R)

@@ -15,10 +15,10 @@ The three steps are resolved from each query's ``CANDIDATES`` nearest fingerprin
 (one partial sort), falling back to the full matrix when those hold too few of the
 chosen building or floor, so the answer is exactly the full computation's.
 
-**Calibration.** The fix's covariance (the posterior's spread + ``cov_floor_m²``) is
-multiplied by ``cov_scale_``, fitted at training so that the median normalised
-innovation squared ``rᵀC⁻¹r`` of internally held-out fixes is that of a calibrated 2-D
-Gaussian (χ²₂ median 2 ln 2, mean 2). ``calibrate="points"`` (default) holds out whole
+**Calibration.** The fix's covariance (the posterior's spread + ``cov_floor_m²``) goes
+through ``calibration_`` (calibration.py), fitted at ``fit`` on internally held-out
+fixes so a model used on its own is calibrated; the server's training step refits it
+on its own held-out sample. ``calibrate="points"`` (default) holds out whole
 reference points (a scan where nobody surveyed, chosen on UJIIndoorLoc's choosing
 users), ``"rows"`` held-out scans at surveyed points, ``"mixed"`` both, None off.
 
@@ -48,12 +48,12 @@ from __future__ import annotations
 import numpy as np
 
 from .base import FingerprintModel, TrainingData
+from .calibration import fit_calibration
 from .posterior import reduce_posterior
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
 CV_FOLDS = 5
-_CHI2_2_MEDIAN = 2.0 * np.log(2.0)  # median of a χ² with 2 degrees of freedom (mean 2)
 
 
 class WKNNModel(FingerprintModel):
@@ -63,8 +63,8 @@ class WKNNModel(FingerprintModel):
     offset search (0 = off); min_tx_rows: transmitters heard by fewer fingerprints are
     ignored; dedupe: drop exact duplicate fingerprints; offset_estimate: per-query RSS
     offset from the nearest ``offset_neighbours`` fingerprints (at most ±``offset_max_db``);
-    calibrate: "points", "rows", "mixed" or None — the held-out residuals the covariance
-    scale ``cov_scale_`` is fitted on (module docstring); cv_rows: held-out scans used by
+    calibrate: "points", "rows", "mixed" or None — the held-out residuals ``calibration_``
+    is fitted on (module docstring); cv_rows: held-out scans used by
     the cross-validation (k and calibration)."""
 
     name = "wknn"
@@ -132,7 +132,6 @@ class WKNNModel(FingerprintModel):
         self._set_matrix(X[keep_rows], None if H is None else H[keep_rows] * self.heading_weight_,
                          data.rp.row_rp[keep_rows], data.row_group[keep_rows])
         self.k_ = self.k if self.k is not None else 3
-        self.cov_scale_ = 1.0
         self.coverage_threshold_ = float("inf")
         if self.k is None or self.calibrate is not None:
             self._cross_validate(data, keep_rows)
@@ -154,17 +153,17 @@ class WKNNModel(FingerprintModel):
         held-out *reference points* (all their scans out of the map): a walker's scan is
         usually taken between surveyed points, which is what this mimics.
 
-        ``cov_scale_`` (when ``calibrate``): median NIS of the held-out fixes (raw
-        covariance) over the χ²₂ median — on held-out reference points ("points"), on
-        held-out scans (users, else devices, else random rows) at reference points that
-        stay in the map ("rows"), or on both pooled ("mixed")."""
+        ``calibration_`` (when ``calibrate``): fitted on the held-out fixes (raw
+        covariance) — at held-out reference points ("points"), on held-out scans
+        (users, else devices, else random rows) at reference points that stay in the map
+        ("rows"), or on both pooled ("mixed")."""
         fs = data.fs.subset(keep_rows)
         n = len(fs)
         rng = np.random.default_rng(0)
         n_rp = int(self.row_rp_.max()) + 1 if n else 0
         fold_rp = (rng.permutation(n_rp) % CV_FOLDS)[self.row_rp_]
         grid = self.k_grid if self.k is None else (self.k,)
-        errs, nis_rp, count = self._cv_pass(fold_rp, grid, rng)
+        errs, held_rp, count = self._cv_pass(fold_rp, grid, rng)
         if count == 0:
             return
         # a scan farther from every fingerprint than 99 % of the scans at held-out
@@ -176,17 +175,13 @@ class WKNNModel(FingerprintModel):
         self.k_ = int(grid[best])
         if self.calibrate is None:
             return
-        nis_row: list[np.ndarray] = [np.zeros(0)]
+        parts = [held_rp[best]] if self.calibrate in ("points", "mixed") else []
         if self.calibrate in ("rows", "mixed"):
-            nis_row = self._row_pass(fs, rng)
-        med = lambda v: float(np.median(v)) if len(v) else float("nan")  # noqa: E731
-        self.cv_nis_median_ = {"points": med(nis_rp[best]), "rows": med(nis_row[0]),
-                               "mixed": med(np.concatenate([nis_rp[best], nis_row[0]]))}
-        ref = self.cv_nis_median_[self.calibrate]
-        if np.isfinite(ref) and ref > 0:
-            self.cov_scale_ = ref / _CHI2_2_MEDIAN
+            parts.append(self._row_pass(fs, rng)[0])
+        self.calibration_ = fit_calibration(np.concatenate([r for r, _ in parts]),
+                                            np.concatenate([c for _, c in parts]))
 
-    def _row_pass(self, fs, rng) -> list[np.ndarray]:
+    def _row_pass(self, fs, rng) -> list[tuple[np.ndarray, np.ndarray]]:
         n = len(fs)
         groups = fs.user if fs.user is not None else fs.device
         if groups is not None and len(set(groups.astype(str))) >= 3:
@@ -197,13 +192,14 @@ class WKNNModel(FingerprintModel):
             fold_row = rng.integers(0, CV_FOLDS, n)
         return self._cv_pass(fold_row, (self.k_,), rng)[1]
 
-    def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[np.ndarray], int]:
-        """Sum of errors per k over the folds, the NIS values (raw covariance) per k, and
-        the count of held-out scans."""
+    def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]], int]:
+        """Sum of errors per k over the folds, the residuals and raw covariances of the
+        held-out fixes per k, and the count of held-out scans."""
         X_all, H_all = self.XT_.T, self.H_
         rp_all, grp_all = self.row_rp_, self.row_group_
         errs = np.zeros(len(grid))
-        nis: list[list[np.ndarray]] = [[] for _ in grid]
+        res: list[list[np.ndarray]] = [[] for _ in grid]
+        covs: list[list[np.ndarray]] = [[] for _ in grid]
         nearest: list[np.ndarray] = []
         count = 0
         try:
@@ -230,12 +226,15 @@ class WKNNModel(FingerprintModel):
                         pred = super()._reduce(np.log(self._scores(D, k, order)))
                     r = pred.xy - truth
                     errs[i] += np.hypot(*r.T).sum()
-                    nis[i].append(np.einsum("ni,nij,nj->n", r, np.linalg.inv(pred.covariance), r))
+                    res[i].append(r)
+                    covs[i].append(pred.covariance)
                 count += len(te)
         finally:
             self._set_matrix(X_all, H_all, rp_all, grp_all)
         self._cv_nearest = np.concatenate(nearest) if nearest else np.zeros(0)
-        return errs, [np.concatenate(v) if v else np.zeros(0) for v in nis], count
+        held = [(np.concatenate(r) if r else np.zeros((0, 2)), np.concatenate(c) if c else np.zeros((0, 2, 2)))
+                for r, c in zip(res, covs, strict=True)]
+        return errs, held, count
 
     # ---- distances ---------------------------------------------------------------------
     def _distances(self, Q: np.ndarray, Hq: np.ndarray | None) -> np.ndarray:
@@ -394,7 +393,6 @@ class WKNNModel(FingerprintModel):
                 top = np.pad(top, ((0, 0), (0, pad)), constant_values=-1)
                 pred.top_p = np.pad(pred.top_p, ((0, 0), (0, pad)))
             pred.top_rp = top
-        pred.covariance *= self.cov_scale_
         return pred
 
     def _hierarchy_scores(self, D: np.ndarray) -> np.ndarray:

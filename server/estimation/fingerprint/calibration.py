@@ -1,0 +1,102 @@
+"""Calibrated fix covariances: how a model's covariance C maps to its real errors.
+
+A model's covariance (the posterior spread over reference points plus a floor) is a
+shape, not a calibrated error: a tracker that takes it as R needs held-out residuals r
+to follow N(0, C). `fit_calibration` fits ``C' = scale·C + floor_m²·I`` on held-out
+residuals so the normalised innovation squared ``rᵀC'⁻¹r`` (NIS) is distributed as a
+χ² with 2 degrees of freedom (mean 2, median 2 ln 2): for each floor on a grid the
+scale that puts the NIS mean at 2 — the mean taken with each NIS clipped at χ²₂'s
+99.9 % quantile, so a few gross errors (a wrong floor) count but cannot decide alone —
+and of those the pair whose NIS median is closest to 2 ln 2. A scale alone cannot
+match both when most held-out scans land on their own reference point (errors near
+0) and a few far away; the floor widens small covariances relative to large ones.
+
+The training step fits it on its held-out sample for every algorithm; every Fix the
+model answers then carries ``apply(C)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+CHI2_2_MEDIAN = 2.0 * np.log(2.0)
+#: floors tried (m); 0 = a pure scale
+FLOOR_GRID_M = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0)
+#: χ²₂'s 99.9 % quantile, where each NIS is clipped for the mean, and that clipped mean
+NIS_CLIP = -2.0 * np.log(1e-3)
+CLIPPED_MEAN = 2.0 * (1.0 - 1e-3)
+
+
+@dataclass(frozen=True)
+class CovarianceCalibration:
+    """``C' = scale·C + floor_m²·I``; identity by default (an uncalibrated model)."""
+
+    scale: float = 1.0
+    floor_m: float = 0.0
+
+    def apply(self, cov: np.ndarray) -> np.ndarray:
+        """(n, 2, 2) covariances, calibrated (a new array)."""
+        out = np.asarray(cov, dtype=float) * self.scale
+        out[..., 0, 0] += self.floor_m**2
+        out[..., 1, 1] += self.floor_m**2
+        return out
+
+
+IDENTITY = CovarianceCalibration()
+
+
+def nis(residuals: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """rᵀC⁻¹r per row: residuals (n, 2), covariances (n, 2, 2)."""
+    r = np.asarray(residuals, dtype=float)
+    c = np.asarray(cov, dtype=float)
+    a, b, d = c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]
+    det = np.maximum(a * d - b * b, 1e-300)
+    return (d * r[:, 0] ** 2 - 2 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det
+
+
+def clipped_mean(values: np.ndarray) -> float:
+    """Mean NIS with each value clipped at NIS_CLIP (a calibrated fix: CLIPPED_MEAN ≈ 2)."""
+    return float(np.mean(np.minimum(values, NIS_CLIP)))
+
+
+def _scale_for_mean(r: np.ndarray, cov: np.ndarray, floor_m: float) -> float | None:
+    """The scale s with clipped-mean NIS(s·C + floor²I) = CLIPPED_MEAN (bisection on log s;
+    NIS falls as s grows); None when the floor alone already makes it too small."""
+    def mean(s: float) -> float:
+        return clipped_mean(nis(r, CovarianceCalibration(s, floor_m).apply(cov)))
+
+    lo, hi = -14.0, 14.0  # log s
+    if mean(np.exp(lo)) < CLIPPED_MEAN:
+        return None
+    if mean(np.exp(hi)) > CLIPPED_MEAN:
+        return float(np.exp(hi))
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if mean(np.exp(mid)) > CLIPPED_MEAN:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(0.5 * (lo + hi)))
+
+
+def fit_calibration(residuals: np.ndarray, cov: np.ndarray) -> CovarianceCalibration:
+    """The calibration of raw covariances ``cov`` (n, 2, 2) from held-out residuals
+    (n, 2) = estimate − truth; identity when there are fewer than 10 finite residuals."""
+    r = np.asarray(residuals, dtype=float)
+    c = np.asarray(cov, dtype=float)
+    ok = np.isfinite(r).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
+    r, c = r[ok], c[ok]
+    if len(r) < 10:
+        return IDENTITY
+    best: tuple[float, CovarianceCalibration] | None = None
+    for floor_m in FLOOR_GRID_M:
+        s = _scale_for_mean(r, c, floor_m)
+        if s is None:
+            continue
+        cal = CovarianceCalibration(s, floor_m)
+        score = abs(np.log(max(float(np.median(nis(r, cal.apply(c)))), 1e-12) / CHI2_2_MEDIAN))
+        if best is None or score < best[0] - 1e-9:
+            best = (score, cal)
+    return IDENTITY if best is None else best[1]

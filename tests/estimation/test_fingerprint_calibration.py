@@ -1,0 +1,45 @@
+"""The training step calibrates every model's covariance on held-out residuals: fixes on
+scans it never saw have a mean NIS near 2 (a calibrated 2-D Gaussian)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from server.estimation.fingerprint import fit_and_validate, from_bytes, make_model, to_bytes
+from server.estimation.fingerprint.calibration import IDENTITY, CovarianceCalibration, clipped_mean, fit_calibration, nis
+from tests.helpers.synthetic import make_site
+
+
+@pytest.fixture(scope="module")
+def site():
+    return make_site(nx=8, ny=6, spacing_m=3.0)
+
+
+@pytest.mark.parametrize("algorithm", ["knn", "wknn"])
+def test_held_out_nis_is_near_two(site, algorithm):
+    model, v = fit_and_validate(lambda: make_model(algorithm, {}), site.survey(scans_per_rp=6, seed=0))
+    fresh = site.survey(scans_per_rp=2, seed=1)  # new noise: never seen by the fit nor the calibration
+    R = fresh.aligned_rss(model.tx_ids_)
+    truth = np.column_stack([fresh.x, fresh.y])
+    calibrated, raw = model.predict(R), model.predict(R, calibrated=False)
+    after = clipped_mean(nis(calibrated.xy - truth, calibrated.covariance))
+    before = clipped_mean(nis(raw.xy - truth, raw.covariance))
+    assert 1.0 <= after <= 3.0, (before, after)
+    assert abs(np.log(after / 2)) < abs(np.log(before / 2)), (before, after)
+    assert model.calibration_ == v.calibration != IDENTITY
+    # the calibration travels with the artifact, so the server's fixes carry it
+    again = from_bytes(to_bytes(model))
+    assert again.calibration_ == model.calibration_
+    assert np.allclose(again.locate(fresh.scans()[0]).covariance, model.locate(fresh.scans()[0]).covariance)
+
+
+def test_fit_calibration_recovers_a_known_scale():
+    rng = np.random.default_rng(0)
+    n = 4000
+    cov = np.repeat(np.diag([1.0, 4.0])[None], n, axis=0) * rng.uniform(0.5, 3, n)[:, None, None]
+    true = CovarianceCalibration(scale=6.0, floor_m=0.0)
+    r = np.array([rng.multivariate_normal([0, 0], c) for c in true.apply(cov)])
+    got = fit_calibration(r, cov)
+    assert 4.5 <= got.scale <= 7.5 and got.floor_m ** 2 <= 0.2 * got.scale, got  # the floor is minor here
+    assert fit_calibration(r[:5], cov[:5]) == IDENTITY  # too few residuals to say anything
