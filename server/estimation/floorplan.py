@@ -19,9 +19,9 @@ The walkable area is the union of the outlines minus the obstacles (None when th
 no outline), and the walls are its boundary (where walkable space ends) plus the line
 features; without an outline, every polygon's boundary is a wall.
 
-Stored form of a walkable area: a list of rings ``[[x, y], ...]``; a point is walkable when
-it lies inside an odd number of them (even-odd rule: a hole is a ring inside a ring), so a
-multipolygon with holes is plain lists. ``Walkable`` answers point-in-area for many points
+Stored form of a walkable area (``Floor.walkable``): a list of polygons, each its exterior ring
+``[[x, y], ...]``; the area is their union. A walkable area with holes (a corridor around a
+store) is cut into hole-free pieces by vertical lines through the holes. ``Walkable`` answers point-in-area for many points
 at once and ``WallIndex`` which moves cross a wall, both through a grid of cells so that a
 PF step over 1,000 particles tests only what is near them (``benchmarks/floorplan_cost.py``).
 """
@@ -245,33 +245,38 @@ def _segments(geom: BaseGeometry) -> np.ndarray:
 
 
 def _rings(geom: BaseGeometry) -> list[Ring]:
+    """The area as exterior rings only (their union is the area): a polygon with holes is cut
+    into hole-free pieces by vertical lines through each hole (rounded to 0.1 mm)."""
     rings = []
-    for poly in shapely.get_parts(geom):
-        for ring in [poly.exterior, *poly.interiors]:
-            rings.append([[round(float(x), 4), round(float(y), 4)] for x, y in ring.coords])
+    for poly in _hole_free(geom):
+        rings.append([[round(float(x), 4), round(float(y), 4)] for x, y in poly.exterior.coords])
     return rings
 
 
+def _hole_free(geom: BaseGeometry, depth: int = 0) -> list[shapely.Polygon]:
+    out: list[shapely.Polygon] = []
+    for poly in shapely.get_parts(geom):
+        if not poly.interiors or depth > 2:
+            out.append(poly)
+            continue
+        x0, y0, x1, y1 = poly.bounds
+        cuts = sorted({float(shapely.Polygon(h).representative_point().x) for h in poly.interiors})
+        edges = [x0, *cuts, x1]
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            if b > a:
+                out += _hole_free(_polygonal(poly.intersection(shapely.box(a, y0 - 1, b, y1 + 1))), depth + 1)
+    return [p for p in out if p.area > 0]
+
+
 # --------------------------------------------------------------------------- using
-def even_odd(rings: Sequence[Sequence[Sequence[float]]]) -> BaseGeometry:
-    """The area inside an odd number of ``rings``: each ring's depth is how many others
-    contain it; an even ring is a polygon's shell and the odd rings one deeper inside it
-    its holes."""
+def union_of(rings: Sequence[Sequence[Sequence[float]]]) -> BaseGeometry:
+    """The area inside any of ``rings`` (each the exterior of a polygon)."""
     polys = [shapely.Polygon(r) for r in rings if len(r) >= 3]
     polys = [p if p.is_valid else _polygonal(shapely.make_valid(p)) for p in polys]
     polys = [p for p in polys if not p.is_empty and p.area > 0]
     if not polys:
         raise PlanError("a walkable area needs at least one ring of 3 or more points around some area")
-    tree = shapely.STRtree(polys)
-    inner, outer = tree.query(polys, predicate="within")
-    keep = inner != outer
-    inner, outer = inner[keep], outer[keep]
-    depth = np.bincount(inner, minlength=len(polys))
-    shells = []
-    for i in np.flatnonzero(depth % 2 == 0):
-        holes = inner[(outer == i) & (depth[inner] == depth[i] + 1)]
-        shells.append(polys[i].difference(shapely.union_all([polys[j] for j in holes])) if len(holes) else polys[i])
-    return _polygonal(shapely.union_all(shells))
+    return _polygonal(shapely.union_all(polys))
 
 
 class _Grid:
@@ -301,7 +306,7 @@ class _Grid:
 
 
 class Walkable:
-    """A walkable area from its rings (even-odd rule), for point-in-area tests of many points.
+    """A walkable area from its rings (their union), for point-in-area tests of many points.
 
     A grid of ``cell_m`` cells, each known to be inside, outside or on the boundary, answers
     most points by a lookup; only points in boundary cells get the exact (shapely) test."""
@@ -309,7 +314,7 @@ class Walkable:
     INSIDE, OUTSIDE, EDGE = 1, 0, 2
 
     def __init__(self, rings: Sequence[Sequence[Sequence[float]]], cell_m: float = 2.0):
-        self.geometry = even_odd(rings)
+        self.geometry = union_of(rings)
         shapely.prepare(self.geometry)
         self._grid = _Grid(self.geometry.bounds, cell_m)
         boxes = self._grid.boxes()

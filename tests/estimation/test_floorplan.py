@@ -3,6 +3,7 @@ where the site frame says; the wall index agrees with the all-pairs test; bad pl
 
 import numpy as np
 import pytest
+import shapely
 
 from server.estimation.floorplan import PlanError, Transform, Walkable, WallIndex, read_plan
 from server.estimation.tracking.geometry import crosses_walls
@@ -77,13 +78,23 @@ def test_walls_only_plans_and_line_features():
     assert len(plan.walls) == 2 + 3
 
 
-def test_walkable_rings_follow_the_even_odd_rule():
-    outer = [[0, 0], [10, 0], [10, 10], [0, 10], [0, 0]]
-    hole = [[2, 2], [8, 2], [8, 8], [2, 8], [2, 2]]
-    island = [[4, 4], [6, 4], [6, 6], [4, 6], [4, 4]]
-    area = Walkable([outer, hole, island])
-    assert area.contains(np.array([[1, 1], [3, 3], [5, 5]])).tolist() == [True, False, True]
-    assert area.geometry.area == pytest.approx(100 - 36 + 4)
+def test_a_walkable_area_with_holes_is_stored_as_hole_free_rings():
+    """A floor with a store in its middle: the corridor around it is a polygon with a hole, stored
+    as exterior rings only whose union is the same area."""
+    fc = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"type": "floor"},
+         "geometry": {"type": "Polygon", "coordinates": [[[0, 0], [10, 0], [10, 10], [0, 10], [0, 0]]]}},
+        {"type": "Feature", "properties": {},
+         "geometry": {"type": "Polygon", "coordinates": [[[2, 2], [8, 2], [8, 8], [2, 8], [2, 2]]]}}]}
+    plan = read_plan(fc, Transform(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))))
+    assert plan.walkable is not None and len(plan.walkable) >= 2
+    rings = [shapely.Polygon(r) for r in plan.walkable]
+    assert all(not p.interiors for p in rings)
+    area = Walkable(plan.walkable)
+    assert area.geometry.area == pytest.approx(100 - 36)
+    assert area.contains(np.array([[1, 1], [5, 5], [9, 5], [5, 9.5]])).tolist() == [True, False, True, True]
+    # the walls are the real boundary (outline and store), not the cuts
+    assert len(plan.walls) == 8
 
 
 def test_the_wall_index_agrees_with_the_all_pairs_test():
