@@ -11,7 +11,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from sqlalchemy.exc import DataError, OperationalError
 
-from server.api import dashboard, events, health, locate, models, sessions, sites, surveys
+from server.api import dashboard, events, floorplans, health, locate, models, sessions, sites, surveys
 from server.api.errors import InternalErrors
 from server.api.limits import BATCH_ROUTE, LOCATE_ROUTE, BodySizeLimit
 from server.auth import Authenticator
@@ -29,6 +29,7 @@ from server.errors import (
     UnsupportedMedia,
 )
 from server.schemas import BatchIn, LocateIn, SurveyIn
+from server.services.floorplans import FloorPlanService
 from server.services.health import HealthService
 from server.services.models import ModelService
 from server.services.positioning import ModelCache, Positioning
@@ -79,6 +80,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.surveys = SurveyService(db, settings.max_survey_rows)
     app.state.models = ModelService(db, on_queued=None if trainer is None else trainer.wake)
     app.state.health = HealthService(db)
+    app.state.floorplans = FloorPlanService(db)
     app.add_middleware(
         BodySizeLimit, max_bytes=settings.max_body_bytes, read_timeout_s=settings.body_read_timeout_s,
         routes=[(BATCH_ROUTE, int(settings.max_batch_body_kb * 1024)), (LOCATE_ROUTE, int(settings.max_locate_body_kb * 1024))],
@@ -89,7 +91,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(OperationalError, _database_unavailable)
     app.add_exception_handler(DataError, _unstorable)
     app.add_exception_handler(OverflowError, _unstorable)
-    for module in (health, sites, surveys, models, locate, sessions, events):
+    for module in (health, sites, floorplans, surveys, models, locate, sessions, events):
         app.include_router(module.router)
     dashboard.install(app)  # the dashboard at / and the docs, with their assets (no CDN)
     _document_own_bodies(app)

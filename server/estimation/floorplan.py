@@ -39,8 +39,9 @@ from shapely.geometry.base import BaseGeometry
 
 from server.estimation.tracking.geometry import crosses_walls, segments_cross
 
-#: the most vertices a plan may have (the MSFT site-1 F1 plan has 1,182)
-MAX_VERTICES = 200_000
+#: the most vertices a plan may have (the MSFT site-1 F1 plan has 1,182; a floor stores at most
+#: 100,000 walkable points)
+MAX_VERTICES = 100_000
 #: a transform whose 2×2 part has |det| below this is degenerate (collapses the plan)
 MIN_DET = 1e-12
 #: below this many walls the all-pairs crossing test is cheaper than the index
@@ -50,7 +51,12 @@ Ring = list[list[float]]
 
 
 class PlanError(ValueError):
-    """The plan or its transform is unusable; the message names the problem."""
+    """The plan or its transform is unusable; the message names the problem and ``part`` says
+    which ("geojson" or "transform")."""
+
+    def __init__(self, msg: str, part: str = "geojson"):
+        super().__init__(msg)
+        self.part = part
 
 
 @dataclass(frozen=True)
@@ -62,18 +68,22 @@ class Transform:
     def __post_init__(self) -> None:
         m = np.asarray(self.matrix, float)
         if m.shape != (2, 3):
-            raise PlanError("transform matrix must be 2×3 [[a, b, c], [d, e, f]]")
+            raise PlanError("transform matrix must be 2×3 [[a, b, c], [d, e, f]]", "transform")
         if not np.all(np.isfinite(m)):
-            raise PlanError("transform matrix has a non-finite entry")
-        if abs(m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) < MIN_DET:
-            raise PlanError("transform is degenerate (its 2×2 part has determinant 0)")
+            raise PlanError("transform matrix has a non-finite entry", "transform")
+        with np.errstate(over="ignore", invalid="ignore"):
+            det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+        if not math.isfinite(det):
+            raise PlanError("transform scale is out of range (its determinant is not finite)", "transform")
+        if abs(det) < MIN_DET:
+            raise PlanError("transform is degenerate (its 2×2 part has determinant 0)", "transform")
 
     @classmethod
     def bbox(cls, bounds: Sequence[float], width_m: float, height_m: float) -> Transform:
         """Map the box (xmin, ymin, xmax, ymax) onto [0, width_m] × [0, height_m], axes kept."""
         x0, y0, x1, y1 = (float(v) for v in bounds)
         if not (math.isfinite(width_m) and math.isfinite(height_m) and width_m > 0 and height_m > 0):
-            raise PlanError("bbox transform needs a positive width and height")
+            raise PlanError("bbox transform needs a positive width and height", "transform")
         if not (x1 > x0 and y1 > y0):
             raise PlanError("the plan's bounding box is degenerate (zero width or height)")
         sx, sy = width_m / (x1 - x0), height_m / (y1 - y0)
@@ -81,15 +91,18 @@ class Transform:
 
     def apply(self, geom: BaseGeometry) -> BaseGeometry:
         (a, b, c), (d, e, f) = self.matrix
-        return shapely.transform(geom, lambda xy: xy @ np.array([[a, d], [b, e]]) + np.array([c, f]))
+        with np.errstate(over="ignore", invalid="ignore"):  # overflow is refused by the caller
+            return shapely.transform(geom, lambda xy: xy @ np.array([[a, d], [b, e]]) + np.array([c, f]))
 
 
 @dataclass(frozen=True)
 class FloorPlan:
-    """A plan in the site frame: wall segments (n, 4) and the walkable rings (None: no outline)."""
+    """A plan in the site frame: wall segments (n, 4), the walkable rings (None: no outline) and
+    the transform that took it there."""
 
     walls: np.ndarray
     walkable: list[Ring] | None
+    transform: Transform
 
 
 # --------------------------------------------------------------------------- reading
@@ -204,11 +217,11 @@ def read_plan(geojson: Any, transform: Transform | None = None, *, bbox_size: tu
     parts = _read(geojson)
     if transform is None:
         if bbox_size is None:
-            raise PlanError("give a transform matrix or a bbox size")
+            raise PlanError("give a transform matrix or a bbox size", "transform")
         transform = Transform.bbox(_bounds([g for _, g in parts]), *bbox_size)
     parts = [(role, transform.apply(g)) for role, g in parts]
     if not all(np.all(np.isfinite(shapely.get_coordinates(g))) for _, g in parts):
-        raise PlanError("the transform takes the plan to non-finite coordinates")
+        raise PlanError("the transform takes the plan to non-finite coordinates", "transform")
     outlines = [g for role, g in parts if role == "outline"]
     obstacles = [g for role, g in parts if role == "obstacle"]
     lines = [g for role, g in parts if role == "wall"]
@@ -224,7 +237,7 @@ def read_plan(geojson: Any, transform: Transform | None = None, *, bbox_size: tu
     else:
         bounds = [g.boundary for g in obstacles]
     walls = np.concatenate([_segments(g) for g in bounds + lines]) if bounds + lines else np.zeros((0, 4))
-    return FloorPlan(walls=walls, walkable=None if walkable is None else _rings(walkable))
+    return FloorPlan(walls=walls, walkable=None if walkable is None else _rings(walkable), transform=transform)
 
 
 def _polygonal(geom: BaseGeometry) -> BaseGeometry:

@@ -7,31 +7,9 @@ import shapely
 
 from server.estimation.floorplan import PlanError, Transform, Walkable, WallIndex, read_plan
 from server.estimation.tracking.geometry import crosses_walls
+from tests.helpers.floorplans import HEIGHT_M, WIDTH_M, plan_geojson
 
-# A 200 m × 100 m floor in longitude/latitude, with a store (an obstacle) in it.
-LON0, LAT0, DLON, DLAT = 120.0, 30.0, 0.002, 0.001
-W, H = 200.0, 100.0
-
-
-def lonlat(x, y):
-    """Site metres → the plan's lon/lat (the inverse of the bbox transform)."""
-    return [LON0 + x / W * DLON, LAT0 + y / H * DLAT]
-
-
-def ring(*xy):
-    pts = [lonlat(x, y) for x, y in xy]
-    return pts + [pts[0]]
-
-
-def plan_geojson(extra=()):
-    return {"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {"type": "floor", "name": "F1"},
-         "geometry": {"type": "MultiPolygon", "coordinates": [[ring((0, 0), (200, 0), (200, 100), (0, 100))]]}},
-        {"type": "Feature", "properties": {"name": "store"},
-         "geometry": {"type": "Polygon", "coordinates": [ring((50, 40), (150, 40), (150, 100), (50, 100))]}},
-        {"type": "Feature", "properties": {"name": "label"}, "geometry": {"type": "Point", "coordinates": lonlat(5, 5)}},
-        *extra,
-    ]}
+W, H = WIDTH_M, HEIGHT_M
 
 
 def segments(walls):
