@@ -321,6 +321,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto: cov_floor_m from a walk-wise cross-validation on the map walks; "
                         "model: the model's own covariances; a number: that cov_floor_m (m)")
     p.add_argument("--concurrency", type=int, default=4, help="test walks replayed at once")
+    p.add_argument("--only-folds", help="with --folds: run only these folds (comma list, e.g. 0,1)")
+    p.add_argument("--plan", default="none", help="floor plan variants, comma list of none, walls (stores and "
+                                                  "outline as walls), walkable (walls + walkable area)")
+    p.add_argument("--plan-margin", type=float, default=0.0, help="grow the plan's stores by this much (m)")
     p.add_argument("--url", help="use this server instead of starting one (then give the keys)")
     p.add_argument("--admin-key", default=_env("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"),
                    help="with --url (default: env LOCALIZER_ADMIN_KEY, else LOCALIZER_API_KEY)")

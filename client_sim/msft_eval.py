@@ -171,6 +171,53 @@ def walk_calibration(p: Prepared, min_distance_m: float = 10.0) -> dict:
     return {"heading_offset_deg": round(off, 2), "weinberg_k": round(k, 4), "until_t": t_cal}
 
 
+# --------------------------------------------------------------------------- floor plan
+#: plan variants a run can replay on: none; the store fronts and outline as walls only; walls
+#: and the walkable area (the PF also kills particles outside it)
+PLANS = ("none", "walls", "walkable")
+
+
+def plan_body(data_dir: Path, variant: str, floor_info: dict, margin_m: float = 0.0) -> dict | None:
+    """The ``PUT …/floors/0/plan`` body for a plan variant of ``geojson_map.json``: the
+    competition's bbox transform onto the floor's width × height. ``walls``: the floor outline
+    loses its ``type = floor`` mark, so every polygon's boundary is a wall and nothing is
+    walkable space. ``margin_m`` ≠ 0 grows (or, negative, shrinks) the stores by that much:
+    the plan is then taken into metres here and sent with the identity matrix."""
+    if variant == "none":
+        return None
+    geojson = json.loads((Path(data_dir) / "geojson_map.json").read_text())
+    if variant == "walls":
+        for f in geojson["features"]:
+            props = f.get("properties") or {}
+            if props.get("type") == "floor":
+                f["properties"] = {**props, "type": "outline"}
+    elif variant != "walkable":
+        raise CliError(f"unknown plan variant {variant!r} (one of {', '.join(PLANS)})", EXIT_USAGE)
+    if margin_m:
+        return {"geojson": _grown(geojson, floor_info, margin_m), "transform": {"matrix": [[1, 0, 0], [0, 1, 0]]}}
+    return {"geojson": geojson, "transform": {"bbox": {"width_m": floor_info["width"], "height_m": floor_info["height"]}}}
+
+
+def _grown(geojson: dict, floor_info: dict, margin_m: float) -> dict:
+    """The plan in metres (bbox transform) with every polygon but the floor outline buffered by
+    ``margin_m`` (mitred corners)."""
+    import shapely
+    from shapely.geometry import mapping, shape
+
+    geoms = [shape(f["geometry"]) for f in geojson["features"]]
+    x0, y0, x1, y1 = shapely.total_bounds(geoms)
+    sx, sy = floor_info["width"] / (x1 - x0), floor_info["height"] / (y1 - y0)
+    out = []
+    for f, g in zip(geojson["features"], geoms, strict=True):
+        g = shapely.transform(g, lambda xy: (xy - [x0, y0]) * [sx, sy])
+        if (f.get("properties") or {}).get("type") != "floor" and g.geom_type in ("Polygon", "MultiPolygon"):
+            g = g.buffer(margin_m, join_style="mitre")
+            if g.is_empty:
+                continue
+        out.append({"type": "Feature", "properties": f.get("properties") or {}, "geometry": mapping(g)})
+    return {"type": "FeatureCollection", "features": out}
+
+
 # --------------------------------------------------------------------------- HTTP parts
 async def _new_site(admin: LocalizerClient, name: str, floor_info: dict) -> dict:
     return await admin.create_site({"name": f"{name} {secrets.token_hex(3)}", "floors": [
@@ -247,6 +294,21 @@ async def build_map(admin: LocalizerClient, maps: list[Prepared], floor_info: di
             "cov_floor_m": params.get("cov_floor_m")}
 
 
+async def plan_site(admin: LocalizerClient, maps: list[Prepared], floor_info: dict, fmap: dict, opt: Options,
+                    data_dir: Path, variant: str) -> int:
+    """A second site with the same map (same rows, same model parameters, so the same fixes) and
+    the floor plan ``variant`` imported onto its floor: sessions there run with the plan."""
+    site = await _new_site(admin, f"msft site1 F1 plan {variant}", floor_info)
+    params = dict(opt.params or {})
+    if fmap.get("cov_floor_m") is not None:
+        params["cov_floor_m"] = fmap["cov_floor_m"]
+    await _upload_and_train(admin, site["id"], _map_rows(maps, list(opt.kinds)), opt.algorithm, params or None,
+                            list(opt.kinds))
+    body = plan_body(data_dir, variant, floor_info, opt.plan_margin_m)
+    await admin.request("PUT", f"/api/v1/sites/{site['id']}/floors/0/plan", body)
+    return site["id"]
+
+
 async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> list[dict]:
     track = []
     for s in p.scans:
@@ -303,6 +365,9 @@ class Options:
     #: the step noise the phone declares: "site" = the per-segment spread (bias included),
     #: "white" = the spread about each walk's own median (the bias left to the trackers)
     step_noise: str = "site"
+    #: floor plan variants to replay every filter on (``PLANS``), and the stores' margin (m)
+    plans: tuple[str, ...] = ("none",)
+    plan_margin_m: float = 0.0
 
 
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
@@ -331,6 +396,10 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                      f"p50 {cv['p50']} m, p90 {cv['p90']} m; model sigma p50 {cv['sigma_p50']} m")
         progress(f"site {fmap['site_id']}: {fmap['fingerprints']} fingerprints; model {m['id']} {m['algorithm']} "
                  f"ready, cov_floor_m {fmap.get('cov_floor_m') or 'auto (model)'}")
+        plan_sites = {"none": fmap["site_id"]}
+        for variant in (v for v in opt.plans if v != "none"):
+            plan_sites[variant] = await plan_site(admin, maps, floor_info, fmap, opt, Path(data_dir), variant)
+            progress(f"site {plan_sites[variant]}: the map with the floor plan ({variant}, margin {opt.plan_margin_m} m)")
         sem = asyncio.Semaphore(opt.concurrency)
         sessions_ok = True
 
@@ -354,14 +423,14 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             async with sem:
                 methods["pdr-only"] = errors_against(w, dead_reckon(steps, w.waypoints[0, 1:], w.t_start)[1:])
                 methods["fingerprint-only"] = await fingerprint_only(device, fmap["site_id"], p)
-                variants = [(f, True) for f in opt.filters] if opt.initial in ("yes", "both") else []
-                variants += [(f, False) for f in opt.filters] if opt.initial in ("no", "both") else []
-                for flt, init in variants:
+                variants = [(f, True, v) for v in opt.plans for f in opt.filters] if opt.initial in ("yes", "both") else []
+                variants += [(f, False, v) for v in opt.plans for f in opt.filters] if opt.initial in ("no", "both") else []
+                for flt, init, plan in variants:
                     if not sessions_ok:
                         break
-                    name = flt if init else f"{flt} (no initial)"
+                    name = (flt if init else f"{flt} (no initial)") + ("" if plan == "none" else f" [plan: {plan}]")
                     try:
-                        res = await track_session(device, fmap["site_id"], p, steps, flt, init, opt.interval_s)
+                        res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s)
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -439,8 +508,9 @@ def main(a) -> int:
     if not files:
         raise CliError(f"no walk files under {a.data_dir}", EXIT_USAGE)
     if a.folds:
-        splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds])
-                  for k in range(a.folds)]
+        only = getattr(a, "only_folds", None)
+        keep = range(a.folds) if not only else [int(k) for k in only.split(",")]
+        splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds]) for k in keep]
     else:
         map_default, test_default = default_split(len(files), a.every)
         test_files = select_walks(files, a.test_walks, test_default)
@@ -455,7 +525,12 @@ def main(a) -> int:
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
-                  fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"))
+                  fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"),
+                  plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
+                  plan_margin_m=float(getattr(a, "plan_margin", 0.0)))
+    for variant in opt.plans:
+        if variant not in PLANS:
+            raise CliError(f"unknown --plan {variant!r} (comma list of {', '.join(PLANS)})", EXIT_USAGE)
     server, tmp = None, None
     url, admin_key, device_key = a.url, a.admin_key, a.device_key
     if not url:
