@@ -24,6 +24,7 @@ from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import FloorTracker, LandmarkCorrector, apply_snap, make_tracker, tracker_from_dict
 from server.estimation.tracking.base import Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
+from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
 from server.estimation.types import (
     Area,
     BatchOutcome,
@@ -79,6 +80,8 @@ class SessionEstimator:
         self.estimate: Estimate | None = None
         #: fixes refused by the innovation gate since the last accepted one
         self.gated_in_a_row = 0
+        #: how much this session's fixes scatter against their own covariance (fixnoise.py)
+        self.fix_noise = FixNoiseScale()
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
         #: appends (squared Mahalanobis distance before any inflation, accepted)
         self.innovations: list[tuple[float, bool]] | None = None
@@ -219,21 +222,31 @@ class SessionEstimator:
         return self._record(scan.t, "scan"), refused
 
     def _update(self, fix: Fix) -> str | None:
-        """Update with the fix unless the innovation gate refuses it (then: why). After
+        """Update with the fix unless the innovation gate refuses it (then: why). The fix's
+        covariance is first scaled by what this session has learned of its fixes' scatter
+        (``fix_noise``; every fix, refused or not, then teaches it) and an accepted one
+        updates with Student-t weight (``fixnoise``), unless the tracker weighs fixes by its
+        own rule. After
         ``MAX_GATED_IN_A_ROW`` refusals in a row, each fix the gate would refuse first grows
         the tracker's covariance by ``INFLATE_FACTOR`` and is tested again, so a lost
         tracker is pulled back by fixes it has learned to trust less in itself."""
         assert self.tracker is not None
-        R = fix_cov(fix.covariance)
+        R_own = fix_cov(fix.covariance)
+        fix = replace(fix, covariance=R_own * self.fix_noise.scale)
+        R = fix.covariance
         d2 = self._d2(fix, R)
         if self.innovations is not None:
             self.innovations.append((d2, d2 <= GATE_D2))
+        self.fix_noise.observe(fix.mean - np.asarray(self.tracker.mean, float), self.tracker.covariance, R_own)
         if d2 > GATE_D2 and self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
             self.tracker.inflate(INFLATE_FACTOR)
             d2 = self._d2(fix, R)
         if d2 <= GATE_D2:
             self.gated_in_a_row = 0
-            self.tracker.update(fix)
+            if self.tracker.weighs_fixes:  # its own adaptive-R rule: the fix as the model gave it
+                self.tracker.update(replace(fix, covariance=R_own))
+            else:
+                self.tracker.update(replace(fix, covariance=R * student_t_factor(d2)))
             return None
         self.gated_in_a_row += 1
         distance = float(np.hypot(*(np.asarray(fix.mean, float) - self.tracker.mean)))
@@ -260,6 +273,7 @@ class SessionEstimator:
             "last_t": self.last_t,
             "estimate": None if self.estimate is None else self.estimate.to_dict(),
             "gated_in_a_row": self.gated_in_a_row,
+            "fix_noise": self.fix_noise.to_list(),
         }
 
     @classmethod
@@ -273,6 +287,7 @@ class SessionEstimator:
         obj.last_t = d["last_t"]
         obj.estimate = None if d["estimate"] is None else Estimate.from_dict(d["estimate"])
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
+        obj.fix_noise = FixNoiseScale.from_list(d.get("fix_noise"))  # absent from older states
         return obj
 
 

@@ -120,16 +120,26 @@ def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes():
         est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
         _, refused = _scan_at(est, float(k), 30.0, 30.0)
         assert refused is not None and est.gated_in_a_row == k + 1
-    # d² = 1800 / (P + 1) ≤ 13.82 needs P ≥ 129.3 m², i.e. 2⁸: the 8th inflation lets the fix in.
-    needed = int(np.ceil(np.log(1800.0 / GATE_D2 - 1.0) / np.log(INFLATE_FACTOR)))
-    assert needed == 8
-    for k in range(needed - 1):
-        _, refused = _scan_at(est, 10.0 + k, 30.0, 30.0)
-        assert refused is not None and est.gated_in_a_row == MAX_GATED_IN_A_ROW + k + 1
-        assert est.tracker.covariance[0, 0] == pytest.approx(INFLATE_FACTOR ** (k + 1))
-    e, refused = _scan_at(est, 20.0, 30.0, 30.0)  # P = 256 m², R = 1 m²: gain 256/257
-    assert refused is None and est.gated_in_a_row == 0
-    assert (e.x, e.y) == pytest.approx((30.0 * 256 / 257, 30.0 * 256 / 257), abs=1e-6)
+    # Each further far fix doubles P before the gate looks again, until d² = 1800 / (P + s) passes
+    # (s: the session's learned fix-noise scale; the far fixes have taught it to grow).
+    from server.estimation.tracking.fixnoise import student_t_factor
+
+    for k in range(30):
+        P, s = est.tracker.covariance[0, 0], est.fix_noise.scale
+        e, refused = _scan_at(est, 10.0 + k, 30.0, 30.0)
+        inflated = INFLATE_FACTOR * P
+        if refused is not None:
+            assert est.gated_in_a_row == MAX_GATED_IN_A_ROW + k + 1
+            assert est.tracker.covariance[0, 0] == pytest.approx(inflated)
+            assert 1800.0 / (inflated + s) > GATE_D2
+            continue
+        d2 = 1800.0 / (inflated + s)
+        assert d2 <= GATE_D2 and est.gated_in_a_row == 0
+        gain = inflated / (inflated + s * student_t_factor(d2))
+        assert (e.x, e.y) == pytest.approx((30.0 * gain, 30.0 * gain), abs=1e-6)
+        break
+    else:
+        pytest.fail("the far fix never passed")
 
 
 def test_time_order_is_stable_with_steps_first_at_equal_times():

@@ -40,8 +40,14 @@ def fixes() -> ModelFixes:
 
 @pytest.mark.parametrize("name", ["ekf", "skpf"])
 def test_the_heading_bias_is_learned_through_the_session(name, fixes):
-    err, biases = _run(name, fixes)
-    half = len(biases) // 2
-    assert np.mean(biases[half:]) == pytest.approx(-4.0, abs=2.0), name
-    seed_err, _ = _run(f"{name}-xy", fixes)
-    assert err[half:].mean() < seed_err[half:].mean(), (name, err[half:].mean(), seed_err[half:].mean())
+    """The bias is learned on each walk, and over three walks the second halves are better
+    than the seed form's (on one walk of fix-dominated tracking the two can tie)."""
+    ours, seeds = [], []
+    for seed in (2, 3, 4):
+        err, biases = _run(name, fixes, seed)
+        half = len(biases) // 2
+        assert np.mean(biases[half:]) == pytest.approx(-4.0, abs=2.0), (name, seed)
+        seed_err, _ = _run(f"{name}-xy", fixes, seed)
+        ours.append(err[half:].mean())
+        seeds.append(seed_err[half:].mean())
+    assert np.mean(ours) < np.mean(seeds), (name, ours, seeds)

@@ -1,0 +1,84 @@
+"""How much a session's fingerprint fixes really scatter, learned from their innovations.
+
+A model's fix covariance R is calibrated on its own survey (held-out reference points),
+but a live phone's scans are noisier than the survey's averaged ones (a body in the way,
+another device, a moving crowd) and a site's radio map may be worse than its held-out
+points suggest. A tracker that takes R as given is then overconfident: it refuses good
+fixes or is pulled around by bad ones. So each session estimates a scale ``s`` with
+E[y yᵀ] = P + s·R (covariance matching, Mehra 1972) from the innovations y of its fixes,
+P being the tracker's covariance before the update:
+
+    s_i = (yᵀ R⁻¹ y − tr(R⁻¹ P)) / 2         (an unbiased sample of s for a 2-D fix)
+
+averaged with exponential forgetting (a window of about ``WINDOW`` fixes) and a prior of
+``PRIOR_WEIGHT`` fixes at s = 1. Each sample is clipped to [0, ``SAMPLE_MAX_RATIO`` · s],
+so one fix from the wrong end of the building moves the scale by a bounded fraction
+while a run of them can still grow it; refused fixes count too (otherwise an
+overconfident R could never learn that it is). The scale is
+kept within [``SCALE_MIN``, ``SCALE_MAX``]. Fixes are then used (gate and update) with
+covariance s·R.
+
+Fixes also have heavy tails (a scan that resembles another corridor), so an accepted fix
+updates with a Student-t likelihood (one variational step: its covariance times
+(ν + d²)/(ν + 2), d² its squared Mahalanobis distance): near fixes keep their weight, far
+ones lose it smoothly instead of all or nothing at the gate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: fixes of memory (forgetting factor 1 − 1/WINDOW)
+WINDOW = 30.0
+#: the prior's weight in fixes, at s = 1 (the model's own calibration)
+PRIOR_WEIGHT = 4.0
+#: largest single sample, as a multiple of the current scale (chosen on the tune scenarios
+#: among 5, 10, 20; a gross outlier moves the
+#: scale by at most that many times itself over the weight)
+SAMPLE_MAX_RATIO = 10.0
+SCALE_MIN = 0.5
+SCALE_MAX = 25.0
+#: degrees of freedom of the Student-t fix likelihood (chosen on the tune scenarios of
+#: benchmarks/scenario_family.py among 3, 4, 6, 10; 3–6 were within 3 % of each other)
+STUDENT_NU = 4.0
+
+
+def student_t_factor(d2: float) -> float:
+    """Covariance factor for a fix at squared Mahalanobis distance ``d2`` under a Student-t
+    likelihood with ``STUDENT_NU`` degrees of freedom (one variational step): fixes near
+    the estimate keep their weight, far ones lose it smoothly instead of at the gate."""
+    return max(1.0, (STUDENT_NU + d2) / (STUDENT_NU + 2.0))
+
+
+@dataclass
+class FixNoiseScale:
+    """Running weighted mean of the scale samples; ``total`` and ``weight`` exclude the prior."""
+
+    total: float = 0.0
+    weight: float = 0.0
+
+    @property
+    def scale(self) -> float:
+        s = (PRIOR_WEIGHT + self.total) / (PRIOR_WEIGHT + self.weight)
+        return float(min(max(s, SCALE_MIN), SCALE_MAX))
+
+    def observe(self, innovation: np.ndarray, P: np.ndarray, R: np.ndarray) -> None:
+        """Learn from one fix: ``innovation`` = fix − estimate, ``P`` the tracker's position
+        covariance before the update, ``R`` the fix's own (unscaled) covariance."""
+        y = np.asarray(innovation, float)
+        Rinv = np.linalg.inv(np.asarray(R, float))
+        sample = (float(y @ Rinv @ y) - float(np.trace(Rinv @ np.asarray(P, float)))) / 2.0
+        sample = min(max(sample, 0.0), SAMPLE_MAX_RATIO * self.scale)
+        keep = 1.0 - 1.0 / WINDOW
+        self.total = keep * self.total + sample
+        self.weight = keep * self.weight + 1.0
+
+    def to_list(self) -> list[float]:
+        return [self.total, self.weight]
+
+    @classmethod
+    def from_list(cls, data: list[float] | None) -> FixNoiseScale:
+        """A stored pair; None (a state stored before this existed) starts at the prior."""
+        return cls() if data is None else cls(float(data[0]), float(data[1]))
