@@ -91,3 +91,16 @@ def _bbox_size(transform: PlanTransform, floor_size: tuple[float | None, float |
         raise InvalidField("transform", "a bbox transform needs width_m and height_m: give them, or declare "
                                         "them on the floor")
     return float(width), float(height)
+
+
+def usable_areas(stored: dict[tuple[int, int], Any]) -> dict[tuple[int, int], Walkable]:
+    """Stored walkable rings as ``Walkable`` areas for the trackers; a floor whose rings enclose
+    nothing usable (possible through ``FloorIn.walkable``) is left unconstrained rather than failing
+    every batch."""
+    out = {}
+    for key, rings in stored.items():
+        try:
+            out[key] = Walkable(rings)
+        except (PlanError, ValueError, TypeError):
+            continue
+    return out
