@@ -231,6 +231,11 @@ class CoverageCell:
 # --- models -----------------------------------------------------------------------------------
 
 ModelStatus = Literal["queued", "training", "ready", "failed"]
+#: when a trained model becomes the site's active one: ``if_none`` (the first ready model of a
+#: site), ``if_better`` (also when its held-out mean error is no worse than the active model's),
+#: ``always``, ``never``
+Activation = Literal["if_none", "if_better", "always", "never"]
+ACTIVATIONS: tuple[Activation, ...] = ("if_none", "if_better", "always", "never")
 
 
 @dataclass(frozen=True)
@@ -242,6 +247,7 @@ class ModelSpec:
     use_heading: bool = False
     kinds: tuple[str, ...] = ()
     include_crowd: bool = True
+    activate: Activation = "if_none"
 
 
 @dataclass(frozen=True)
@@ -260,10 +266,11 @@ class ModelInfo:
     metrics: Mapping[str, Any] | None
     created_at: datetime
     updated_at: datetime
+    activate: Activation = "if_none"
 
     @property
     def spec(self) -> ModelSpec:
-        return ModelSpec(self.algorithm, self.params, self.use_heading, self.kinds, self.include_crowd)
+        return ModelSpec(self.algorithm, self.params, self.use_heading, self.kinds, self.include_crowd, self.activate)
 
 
 @dataclass(frozen=True)

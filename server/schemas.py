@@ -15,6 +15,7 @@ from pydantic import (
     model_validator,
 )
 
+from server.domain import Activation
 from server.estimation.fingerprint.registry import ALGORITHMS
 from server.estimation.tracking import tracker_names
 
@@ -362,23 +363,53 @@ class Health(BaseModel):
 
 class ModelIn(Strict):
     algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)] = Field(
-        description="The fingerprint algorithm to train.", json_schema_extra=_ALGORITHM_ENUM)
+        "wknn", description="The fingerprint algorithm to train (default `wknn`, extension: the field was required).",
+        json_schema_extra=_ALGORITHM_ENUM)
     params: Annotated[dict[str, Any], Field(max_length=50)] = {}
     use_heading: bool = False
     kinds: Annotated[list[Literal["wifi", "ble"]], Field(min_length=1, max_length=2)] | None = None
     include_crowd: bool = Field(True, description="Train on crowdsourced fingerprints too (extension).")
+    activate: Activation = Field("if_none", description=(
+        "When the trained model becomes the site's active one (extension): `if_none` (default) when the site has "
+        "no active model; `if_better` also when its held-out mean error is no worse than the active model's; "
+        "`always`; `never`. The decision and its figures are in the model's `metrics.activation`."))
+
+
+class ActivationOut(BaseModel):
+    requested: Activation
+    activated: bool
+    reason: str
+    mean_error_m: float | None = Field(None, description="This model's held-out mean error (m).")
+    active_model_id: int | None = Field(None, description="The model that was active when it was decided.")
+    active_mean_error_m: float | None = Field(None, description="That model's held-out mean error (m).")
+
+
+class CalibrationOut(BaseModel):
+    scale: float
+    floor_m: float
+
+
+class NisOut(BaseModel):
+    mean: float | None
+    median: float | None
 
 
 class ModelMetrics(BaseModel):
-    mean_error_m: float | None
-    p50_error_m: float | None
-    p90_error_m: float | None
-    mapping_rate: float | None
-    floor_hit_rate: float | None
+    mean_error_m: float | None = None
+    p50_error_m: float | None = None
+    p90_error_m: float | None = None
+    mapping_rate: float | None = None
+    floor_hit_rate: float | None = None
     fit_time_s: float | None = None
     validated_on: int | None = Field(None, description="Held-out fingerprints the metrics come from.")
     building_hit_rate: float | None = None
     us_per_query: float | None = None
+    held_out: str | None = Field(None, description="How the held-out sample was drawn.")
+    calibration: CalibrationOut | None = Field(None, description=(
+        "The answers' covariance is scale·C + floor_m²·I of the model's own C, fitted on the held-out sample."))
+    nis_raw: NisOut | None = Field(None, description="Held-out NIS rᵀC⁻¹r before calibration (calibrated: mean 2).")
+    nis_calibrated: NisOut | None = Field(None, description="Held-out NIS after calibration.")
+    activation: ActivationOut | None = Field(None, description="Whether training activated the model, and why.")
 
 
 class ModelOut(BaseModel):
@@ -394,6 +425,7 @@ class ModelOut(BaseModel):
     active: bool
     trained_on: int
     metrics: ModelMetrics | None = None
+    activate: Activation = "if_none"
     created_at: datetime
     updated_at: datetime
 

@@ -19,10 +19,11 @@ def model_out(model: ModelInfo) -> ModelOut:
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=ModelOut)
 def train(site_id: PathId, body: ModelIn, models: Models, _: Admin) -> ModelOut:
-    """Queue a training job; poll the model until it is `ready` or `failed`."""
+    """Queue a training job; poll the model until it is `ready` or `failed`. Whether it then
+    becomes the active model follows `activate` (see `metrics.activation` for the decision)."""
     spec = ModelSpec(
         algorithm=body.algorithm, params=body.params, use_heading=body.use_heading, kinds=tuple(body.kinds or ()),
-        include_crowd=body.include_crowd,
+        include_crowd=body.include_crowd, activate=body.activate,
     )
     return model_out(models.queue(site_id, spec))
 

@@ -5,8 +5,9 @@ several server processes can each run a worker) and runs each in a child process
 a long fit never holds the request-serving process's interpreter (GIL) or memory. The child loads the
 site's fingerprints, measures the model on a bounded held-out sample (and calibrates
 its covariance there), refits on everything, and stores the artifact, its SHA-256 and
-the metrics in one transaction. The first model
-of a site that becomes ready is activated in that same transaction.
+the metrics in one transaction. Whether the model becomes the site's active one is
+decided in that same transaction (`decide_activation`: by default the first ready
+model of a site; ``if_better`` also one whose held-out error is no worse).
 """
 
 from __future__ import annotations
@@ -18,14 +19,14 @@ import signal
 import threading
 import time
 import traceback
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from sqlalchemy.exc import IntegrityError
 
 from server.db import Database
-from server.domain import FingerprintRecord, ModelSpec, Transmitter
+from server.domain import Activation, FingerprintRecord, ModelInfo, ModelSpec, Transmitter
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
 from server.estimation.fingerprint.metrics import Validation
 from server.store import models as store
@@ -80,7 +81,7 @@ def run_training_job(database_url: str, model_id: int) -> str:
             with db.transaction() as s:
                 store.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
             return "failed"
-        return "ready" if _store(db, site_id, model_id, blob, len(rows), metrics) else "gone"
+        return "ready" if _store(db, site_id, model_id, blob, len(rows), metrics, spec.activate) else "gone"
     finally:
         db.dispose()
 
@@ -134,14 +135,64 @@ def _row(fp: FingerprintRecord) -> dict[str, Any]:
             "device": fp.device, "t": fp.t, "label": fp.label}
 
 
-def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None) -> bool:
-    """Store the outcome if the model is still in training (compare-and-set); False if it was not."""
-    for activate in (True, False):
+@dataclass(frozen=True)
+class ActivationDecision:
+    """Whether a freshly trained model becomes the site's active one, and why (kept in its metrics)."""
+
+    requested: Activation
+    activated: bool
+    reason: str
+    mean_error_m: float | None  # the new model's held-out mean error
+    active_model_id: int | None = None  # the model active when it was decided
+    active_mean_error_m: float | None = None
+
+    def record(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def decide_activation(requested: Activation, mean_error_m: float | None, active: ModelInfo | None) -> ActivationDecision:
+    """``if_better``: active when no model is, or when its held-out mean error (the same
+    figure on both models, each on its own held-out sample) is no worse than the active
+    model's; a model without that figure (too few fingerprints to validate) never
+    displaces one."""
+    if active is None:
+        return ActivationDecision(requested, requested != "never", "no active model" if requested != "never"
+                                  else "activation not requested", mean_error_m)
+    theirs = (active.metrics or {}).get("mean_error_m")
+    theirs = float(theirs) if isinstance(theirs, (int, float)) else None
+
+    def decided(activated: bool, reason: str) -> ActivationDecision:
+        return ActivationDecision(requested, activated, reason, mean_error_m, active.id, theirs)
+
+    if requested == "always":
+        return decided(True, "activation requested")
+    if requested in ("never", "if_none"):
+        return decided(False, f"model {active.id} is active")
+    if mean_error_m is None:
+        return decided(False, "no held-out error to compare (too few fingerprints to validate)")
+    if theirs is None:
+        return decided(True, f"the active model {active.id} has no held-out error")
+    if mean_error_m <= theirs:
+        return decided(True, f"held-out mean error {mean_error_m:.2f} m ≤ {theirs:.2f} m of model {active.id}")
+    return decided(False, f"held-out mean error {mean_error_m:.2f} m > {theirs:.2f} m of model {active.id}")
+
+
+def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: int, metrics: dict | None,
+           requested: Activation) -> bool:
+    """Store the outcome if the model is still in training (compare-and-set); False if it was not.
+    The activation is decided in the same transaction, against the model active then."""
+    error = (metrics or {}).get("mean_error_m")
+    for attempt in range(2):
         try:
             with db.transaction() as s:
-                if not store.finish_training(s, model_id, blob, checksum(blob), trained_on, metrics):
+                decision = decide_activation(requested, error, store.active_model(s, site_id))
+                if attempt:
+                    decision = replace(decision, activated=False,
+                                       reason="another model of the site became active at the same moment")
+                record = {**(metrics or {}), "activation": decision.record()}
+                if not store.finish_training(s, model_id, blob, checksum(blob), trained_on, record):
                     return False
-                if activate and not store.has_active_model(s, site_id):
+                if decision.activated:
                     store.activate_model(s, site_id, model_id)
             return True
         except IntegrityError:

@@ -12,7 +12,7 @@ from typing import Any, cast
 from sqlalchemy import Connection, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
-from server.domain import Artifact, ModelInfo, ModelSpec, ModelStatus, ServingCandidate
+from server.domain import ACTIVATIONS, Activation, Artifact, ModelInfo, ModelSpec, ModelStatus, ServingCandidate
 from server.store._results import changed
 from server.store.sites import touch_site
 from server.tables import Model, ModelArtifact
@@ -23,8 +23,18 @@ def _info(row: Model) -> ModelInfo:
         id=row.id, site_id=row.site_id, algorithm=row.algorithm, params=dict(row.params or {}),
         use_heading=row.use_heading, kinds=tuple(row.kinds or ()), include_crowd=row.include_crowd,
         status=cast(ModelStatus, row.status), error=row.error, active=row.active, trained_on=row.trained_on,
-        metrics=None if row.metrics is None else dict(row.metrics), created_at=row.created_at, updated_at=row.updated_at,
+        # before training ends the JSON holds only the requested activation, not metrics
+        metrics=dict(row.metrics) if row.metrics is not None and row.status == "ready" else None,
+        created_at=row.created_at, updated_at=row.updated_at,
+        activate=_requested_activation(row.metrics),
     )
+
+
+def _requested_activation(metrics: dict[str, Any] | None) -> Activation:
+    """The activation asked for when the model was queued: kept in its metrics JSON
+    (``activation.requested``), which the training job's record carries on."""
+    requested = ((metrics or {}).get("activation") or {}).get("requested")
+    return cast(Activation, requested) if requested in ACTIVATIONS else "if_none"
 
 
 def _select_models():
@@ -39,6 +49,7 @@ def add_model(s: Session, site_id: int, spec: ModelSpec) -> ModelInfo:
     row = Model(
         site_id=site_id, algorithm=spec.algorithm, params=dict(spec.params), use_heading=spec.use_heading,
         kinds=list(spec.kinds), include_crowd=spec.include_crowd, status="queued",
+        metrics={"activation": {"requested": spec.activate}},
     )
     s.add(row)
     s.flush()
@@ -57,6 +68,11 @@ def list_models(s: Session, site_id: int) -> list[ModelInfo]:
 def model_site(s: Session, model_id: int) -> int | None:
     """The site a model belongs to (None: no such model)."""
     return s.scalar(select(Model.site_id).where(Model.id == model_id))
+
+
+def active_model(s: Session, site_id: int) -> ModelInfo | None:
+    row = s.scalar(_select_models().where(Model.site_id == site_id, Model.active.is_(True)))
+    return None if row is None else _info(row)
 
 
 def has_active_model(s: Session, site_id: int) -> bool:

@@ -29,6 +29,24 @@ from .dataset import FingerprintSet, ReferencePoints
 from .features import RssEncoder, heading_features
 from .posterior import Prediction, reduce_posterior
 
+#: fingerprints the floor classifier is fitted on at most (chosen on UJIIndoorLoc's choosing
+#: users: benchmarks/floor_classifier_scale.py)
+FLOOR_CLASSIFIER_ROWS = 4000
+
+
+def stratified_rows(group: np.ndarray, cap: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most ``cap`` rows, each group keeping its share of them (at
+    least one row), drawn at random within it; every row when there are few enough."""
+    n = len(group)
+    if n <= cap:
+        return np.arange(n)
+    rng = np.random.default_rng(seed)
+    _, inv, counts = np.unique(group, return_inverse=True, return_counts=True)
+    inv = np.asarray(inv).reshape(-1)
+    quota = np.minimum(counts, np.maximum(1, np.floor(counts * cap / n).astype(int)))
+    return np.sort(np.concatenate([rng.choice(np.flatnonzero(inv == g), size=int(q), replace=False)
+                                   for g, q in enumerate(quota)]))
+
 
 class UnknownTransmittersError(ValueError):
     """The scan contains no transmitter known to the model (API: 422)."""
@@ -76,7 +94,9 @@ class FingerprintModel:
     n_candidates: how many candidates a Fix lists.
     floor_classifier: "svc" (default): a dedicated RBF SVC over (building, floor) picks
         the floor first and the model then only considers that floor's reference
-        points (skipped when the site has one floor); "trees": extra trees instead;
+        points (skipped when the site has one floor; fitted on a stratified sample of
+        at most ``floor_classifier_rows`` fingerprints, default FLOOR_CLASSIFIER_ROWS);
+        "trees": extra trees instead;
         None: the floor holding most of the model's own posterior mass wins.
     """
 
@@ -94,6 +114,7 @@ class FingerprintModel:
         cov_floor_m: float | None = None,
         n_candidates: int = 5,
         floor_classifier: str | None = "svc",
+        floor_classifier_rows: int = FLOOR_CLASSIFIER_ROWS,
     ):
         self.kinds = None if kinds is None else list(kinds)
         self.use_heading = bool(use_heading)
@@ -105,6 +126,9 @@ class FingerprintModel:
         if floor_classifier not in (None, "svc", "trees"):
             raise ValueError("floor_classifier must be None, 'svc' or 'trees'")
         self.floor_classifier = floor_classifier
+        if int(floor_classifier_rows) < 1:
+            raise ValueError("floor_classifier_rows must be at least 1")
+        self.floor_classifier_rows = int(floor_classifier_rows)
         RssEncoder(missing, floor_dbm)  # validate early
 
     # ---- parameters --------------------------------------------------------------
@@ -165,12 +189,22 @@ class FingerprintModel:
     def _fit(self, X: np.ndarray, H: np.ndarray | None, data: TrainingData) -> None:
         raise NotImplementedError
 
+    def reuse_choices(self, validated: FingerprintModel) -> None:
+        """Before fitting on all data: take what ``validated`` (the same model fitted on the
+        validation split) chose by its own cross-validation, instead of choosing again —
+        so the training step's second fit is cheap. Default: nothing to reuse."""
+
     def _floor_design(self, X, H):
         return X if H is None else np.hstack([X, self.heading_weight_ * H])
 
     def _fit_floor_classifier(self, X, H, row_group):
+        """The (building, floor) classifier, fitted on at most ``floor_classifier_rows``
+        fingerprints (a stratified sample: an RBF SVC's fit grows ≈ n², its size with n)."""
         if self.floor_classifier is None or len(np.unique(row_group)) < 2:
             return None
+        rows = stratified_rows(row_group, self.floor_classifier_rows)
+        X, row_group = X[rows], row_group[rows]
+        H = None if H is None else H[rows]
         if self.floor_classifier == "svc":
             from sklearn.svm import SVC
 

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .base import stratified_rows
 from .calibration import CovarianceCalibration, fit_calibration, nis
 from .dataset import FingerprintSet, group_split, random_split
 from .posterior import Prediction
@@ -124,19 +125,10 @@ def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 
 
 
 def stratified_sample(fs: FingerprintSet, cap: int, seed: int = 0) -> FingerprintSet:
-    """At most ``cap`` rows of ``fs``, each (building, floor) keeping its share (at least
-    one row each), drawn at random within it; ``fs`` itself when it is small enough."""
-    n = len(fs)
-    if n <= cap:
+    """At most ``cap`` rows of ``fs``, each (building, floor) keeping its share."""
+    if len(fs) <= cap:
         return fs
-    rng = np.random.default_rng(seed)
-    _, group = np.unique(np.column_stack([fs.building, fs.floor]), axis=0, return_inverse=True)
-    group = np.asarray(group).reshape(-1)
-    counts = np.bincount(group)
-    quota = np.maximum(1, np.floor(counts * cap / n).astype(int))
-    keep = [rng.choice(np.flatnonzero(group == g), size=min(int(q), int(c)), replace=False)
-            for g, (q, c) in enumerate(zip(quota, counts, strict=True))]
-    return fs.subset(np.sort(np.concatenate(keep)))
+    return fs.subset(stratified_rows(fs.building.astype(np.int64) * 1000 + fs.floor, cap, seed))
 
 
 @dataclass(frozen=True)
@@ -205,11 +197,15 @@ def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200) 
 def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
                      seed: int = 0):
     """The server's training step: fit on a held-out split and `validate`, then fit a
-    fresh model on all of ``fs`` carrying the calibration. ``model_factory()`` returns
+    fresh model on all of ``fs`` carrying the calibration (reusing the split model's
+    own choices, so the second fit does not cross-validate again). ``model_factory()`` returns
     an unfitted model. Returns (model, Validation)."""
     train, test, split = holdout_split(fs, how, test_fraction, seed)
-    v = validate(model_factory().fit(train), test, split)
-    m = model_factory().fit(fs)
+    validated = model_factory().fit(train)
+    v = validate(validated, test, split, n_single=50)
+    m = model_factory()
+    m.reuse_choices(validated)
+    m.fit(fs)
     m.calibration_ = v.calibration
     v.metrics.fit_time_s = m.fit_time_s_
     v.metrics.n_train = m.n_fingerprints_

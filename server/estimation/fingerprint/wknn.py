@@ -132,7 +132,7 @@ class WKNNModel(FingerprintModel):
         self._set_matrix(X[keep_rows], None if H is None else H[keep_rows] * self.heading_weight_,
                          data.rp.row_rp[keep_rows], data.row_group[keep_rows])
         self.k_ = self.k if self.k is not None else 3
-        self.coverage_threshold_ = float("inf")
+        self.coverage_threshold_ = getattr(self, "reused_coverage_threshold_", float("inf"))
         if self.k is None or self.calibrate is not None:
             self._cross_validate(data, keep_rows)
 
@@ -145,6 +145,14 @@ class WKNNModel(FingerprintModel):
         self.row_rp_ = np.asarray(row_rp, dtype=np.int64)
         self.row_group_ = np.asarray(row_group, dtype=np.int64)
         self.row_building_ = self.group_building_[self.row_group_] if len(self.row_group_) else self.row_group_
+
+    def reuse_choices(self, validated: FingerprintModel) -> None:
+        """Take k and the coverage threshold ``validated`` chose by cross-validation and
+        skip choosing them again (calibration is the training step's)."""
+        if isinstance(validated, WKNNModel):
+            self.k = validated.k_
+            self.calibrate = None
+            self.reused_coverage_threshold_ = validated.coverage_threshold_
 
     def _cross_validate(self, data: TrainingData, keep_rows: np.ndarray) -> None:
         """Internal 5-fold cross-validation (the floor taken as known).
@@ -223,7 +231,7 @@ class WKNNModel(FingerprintModel):
                 nearest.append(np.take_along_axis(D, order[:, :1], axis=1)[:, 0])
                 for i, k in enumerate(grid):
                     with np.errstate(divide="ignore"):
-                        pred = super()._reduce(np.log(self._scores(D, k, order)))
+                        pred = self._reduce(np.log(self._scores(D, k, order)))
                     r = pred.xy - truth
                     errs[i] += np.hypot(*r.T).sum()
                     res[i].append(r)
