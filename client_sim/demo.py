@@ -54,12 +54,12 @@ async def demo_site(url: str, admin_key: str, seed: int) -> dict:
         if site is not None and site["fingerprints"]["survey"]:
             model = next((m for m in await api.list_models(site["id"]) if m.get("active")), None)
             if model is None or not await _model_loads(api, site["id"]):
-                model = await api.wait_model(site["id"], (await api.train_model(site["id"], "knn"))["id"])
+                model = await api.wait_model(site["id"], (await api.train_model(site["id"], "wknn"))["id"])
                 if model.get("status") == "ready" and not model.get("active"):
                     model = await api.activate_model(site["id"], model["id"])
             return {"site_id": site["id"], "reused": True, "accepted": site["fingerprints"]["survey"],
                     "reference_points": site["reference_points"], "model": model}
-    survey = await run_survey(url, admin_key, SCENARIO, scans_per_heading=SCANS_PER_HEADING, seed=seed, train="knn",
+    survey = await run_survey(url, admin_key, SCENARIO, scans_per_heading=SCANS_PER_HEADING, seed=seed, train="wknn",
                               site_name=SITE_NAME, site_id=site["id"] if site else None, progress=True)
     return survey | {"reused": False}
 
