@@ -8,8 +8,9 @@ offline through ``SessionEstimator.apply_batch`` in 2 s batches, with the sessio
 through JSON between batches as the server stores it. Each scenario is a rectangular
 corridor loop with WiFi APs and iBeacons placed at random around it, a log-distance
 radio with a fixed spatial shadowing field per transmitter, body shadowing (a
-transmitter behind the walker is weaker) and per-scan noise; a KNN model fitted on a
-survey every 2 m of the loop (3 scans per point, averaged); a walker whose PDR has a
+transmitter behind the walker is weaker) and per-scan noise; a fingerprint model
+(``--algorithm``) fitted as the server's training job fits it (held-out validation and a
+calibrated covariance) on a survey every 2 m of the loop (3 scans per point, averaged); a walker whose PDR has a
 heading bias that drifts linearly, a step-length bias and white noise, and who sends
 steps **without** std fields (the server's defaults apply).
 
@@ -26,7 +27,8 @@ Figures per method: mean / p90 error (m) over every estimate of every scenario; 
 position NEES (2-D; mean over step estimates, 2 is consistent); the NIS of the fixes
 (mean over fixes, 2 is consistent; before any inflation); the share of fixes refused by
 the innovation gate; and the mean error of the track after the RTS smoother
-(``server/estimation/tracking/smoother.py``, run on the stored track as a replay would).
+(``server/estimation/tracking/smoother.py``, run on the stored track as a replay would);
+and the mean size of the session's stored state (JSON, kB) per batch.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
+from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
 from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
@@ -161,7 +164,10 @@ class World:
             keys = set().union(*scans)
             rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
                          "rss": {k: float(np.mean([s.get(k, -100.0) for s in scans])) for k in keys}})
-        return make_model(algorithm, {}, use_heading=False, kinds=None).fit(FingerprintSet.from_rows(rows))
+        # as the server's training job fits it: held-out validation, calibrated covariance
+        model, _ = fit_and_validate(lambda: make_model(algorithm, {}, use_heading=False, kinds=None),
+                                    FingerprintSet.from_rows(rows))
+        return model
 
 
 @dataclass
@@ -234,13 +240,15 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
     steps, scans = list(w.steps), list(w.scans)
     truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
     truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
-    errors, nees, innovations, track = [], [], [], []
+    errors, nees, innovations, track, state_bytes = [], [], [], [], []
     t_end = batch_s
     while steps or scans:
         bs = [s for s in steps if s.t < t_end]
         bc = [s for s in scans if s.t < t_end]
         steps, scans = steps[len(bs):], scans[len(bc):]
-        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+        stored = json.dumps(est.to_dict())
+        state_bytes.append(len(stored))
+        est = SessionEstimator.from_dict(json.loads(stored))
         est.innovations = []
         out = est.apply_batch(bs, bc, fixes, site)
         innovations += est.innovations
@@ -254,7 +262,7 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
     nis = [d2 for d2, _ in innovations]
     smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1])) for e in smooth_track(track)]
     return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis, "refused": sum(not ok for _, ok in innovations),
-            "fixes": len(innovations), "bias_deg": getattr(est.tracker, "heading_bias_deg", None)}
+            "fixes": len(innovations), "state_bytes": state_bytes, "bias_deg": getattr(est.tracker, "heading_bias_deg", None)}
 
 
 def pdr_errors(w: Walk) -> list[float]:
@@ -285,22 +293,6 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
     return out
 
 
-def fix_nis(sc: Scenario) -> list[float]:
-    """e R⁻¹ e of the model's raw fixes against the truth (for the covariance scale)."""
-    world = World(sc)
-    w = walk(world)
-    fixes = ModelFixes(world.model())
-    out = []
-    for s, p in zip(w.scans, w.scan_truth, strict=True):
-        try:
-            f = fixes.fix(s, None)
-        except NoFix:
-            continue
-        e = f.mean - p
-        out.append(float(e @ np.linalg.solve(np.asarray(f.covariance), e)))
-    return out
-
-
 def table(results: list[dict], methods) -> list[dict]:
     rows = []
     for m in methods:
@@ -314,6 +306,7 @@ def table(results: list[dict], methods) -> list[dict]:
             row["nis"] = float(nis.mean()) if nis.size else float("nan")
             fx = sum(r[m]["fixes"] for r in results)
             row["refused_pct"] = 100.0 * sum(r[m]["refused"] for r in results) / max(fx, 1)
+            row["state_kb"] = float(np.mean(np.concatenate([r[m]["state_bytes"] for r in results]))) / 1000
         rows.append(row)
     return rows
 
@@ -322,14 +315,14 @@ def markdown(rows: list[dict], title: str) -> str:
     pdr = next(r["mean"] for r in rows if r["method"] == "pdr-only")
     fp = next(r["mean"] for r in rows if r["method"] == "fingerprint-only")
     lines = [f"{title}", "", "| method | mean m | p90 m | vs PDR | vs fingerprint | smoothed m | NEES mean | NEES p50 "
-             "| NIS mean | refused |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| NIS mean | refused | state kB |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "nees" in r:
             extra = (f"{100 * (r['mean'] / pdr - 1):+.0f} % | {100 * (r['mean'] / fp - 1):+.0f} % | {r['smoothed']:.2f} | "
                      f"{r['nees']:.2f} | "
-                     f"{r['nees_p50']:.2f} | {r['nis']:.2f} | {r['refused_pct']:.1f} % |")
+                     f"{r['nees_p50']:.2f} | {r['nis']:.2f} | {r['refused_pct']:.1f} % | {r['state_kb']:.1f} |")
         else:
-            extra = "— | — | — | — | — | — | — |"
+            extra = "— | — | — | — | — | — | — | — |"
         lines.append(f"| {r['method']} | {r['mean']:.2f} | {r['p90']:.2f} | {extra}")
     return "\n".join(lines)
 
@@ -341,9 +334,8 @@ def main() -> int:
     ap.add_argument("--first", type=int, default=0, help="index of the first scenario")
     ap.add_argument("--filters", default=",".join(FILTERS))
     ap.add_argument("--fixes", choices=("knn", "gaussian", "both"), default="both")
-    ap.add_argument("--cov-scale", type=float, default=None,
-                    help="multiply the KNN covariance by this (default: fitted on 12 tune scenarios so the "
-                         "fixes' mean NIS against the truth is 2)")
+    ap.add_argument("--cov-scale", type=float, default=1.0,
+                    help="multiply the model's (already calibrated) fix covariance by this (default 1: as served)")
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
     ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
@@ -357,15 +349,11 @@ def main() -> int:
         PARAMS.setdefault(flt, {})[param] = float(value)
     scenarios = [draw(a.split, i) for i in range(a.first, a.first + a.n)]
     cov_scale = a.cov_scale
-    if cov_scale is None and a.fixes != "gaussian":
-        nis = np.concatenate([fix_nis(draw("tune", i)) for i in range(12)])
-        cov_scale = float(np.mean(nis) / 2.0)
-        print(f"KNN covariance scale fitted on tune scenarios 0-11: {cov_scale:.2f} (fixes' mean NIS 2)")
     report = {"split": a.split, "scenarios": [asdict(s) for s in scenarios], "cov_scale": cov_scale}
     kinds = ("knn", "gaussian") if a.fixes == "both" else (a.fixes,)
     for kind in kinds:
         t0 = time.perf_counter()
-        results = [run_scenario(s, filters, kind, cov_scale or 1.0) for s in scenarios]
+        results = [run_scenario(s, filters, kind, cov_scale) for s in scenarios]
         rows = table(results, ["pdr-only", "fingerprint-only", *filters])
         title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {kind} fixes "
                  f"({time.perf_counter() - t0:.0f} s)")

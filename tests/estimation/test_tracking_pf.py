@@ -58,14 +58,15 @@ def test_pf_update_weights_are_gaussian_likelihood():
     t.update(Fix(1.0, -0.5, 0, R))
     d = before - np.array([1.0, -0.5])
     lik = np.exp(-0.5 * (d[:, 0] ** 2 / 2.0 + d[:, 1] ** 2 / 0.5))
-    np.testing.assert_allclose(t.weights, lik / lik.sum(), rtol=1e-10)
-    np.testing.assert_allclose(t.mean, (lik / lik.sum()) @ before, rtol=1e-10)
+    # weights are kept float32-exact (what the stored state holds)
+    np.testing.assert_allclose(t.weights, lik / lik.sum(), rtol=1e-6)
+    np.testing.assert_allclose(t.mean, (lik / lik.sum()) @ before, rtol=1e-6)
 
 
 def test_pf_resamples_when_degenerate():
     t = make_tracker("pf-xy", [0, 0], np.eye(2), seed=3)
     t.update(Fix(1.0, 0.0, 0, np.eye(2) * 0.01))
-    np.testing.assert_allclose(t.weights, 1.0 / 1000)
+    np.testing.assert_allclose(t.weights, np.float32(1.0 / len(t.weights)))
     # exact posterior mean: 1·1/(1 + 0.01) ≈ 0.99
     assert abs(t.mean[0] - 0.99) < 0.1
     assert len(np.unique(t.particles[:, 0])) < 200  # collapsed onto the few likely ones
@@ -135,3 +136,58 @@ def test_pf_redraws_around_the_last_estimate_when_every_particle_would_die():
     assert np.linalg.norm(t.mean - before) < 2.0  # within a step of where it was
     np.testing.assert_allclose(t.weights, 1e-3)
     assert t.particles.shape == (1000, 4)
+
+
+def test_pf_particle_count_follows_the_spread_of_the_cloud():
+    """KLD-sampling: a fix that collapses the cloud leaves fewer particles; a wide cloud keeps
+    the maximum; the count stays within [min_particles, n_particles]."""
+    t = make_tracker("pf", [0, 0], np.eye(2) * 0.25, seed=3)
+    t.update(Fix(0.2, 0.0, 0, np.eye(2) * 0.05))
+    tight = len(t.particles)
+    assert t.params["min_particles"] <= tight < t.params["n_particles"]
+    wide = make_tracker("pf", [0, 0], np.eye(2) * 400.0, seed=3)
+    wide.update(Fix(0.0, 0.0, 0, np.eye(2) * 300.0))
+    wide._resample()
+    assert len(wide.particles) == wide.params["n_particles"]
+    for _ in range(5):  # the count can grow back as the cloud spreads again
+        t.inflate(4.0)
+        t._resample()
+    assert len(t.particles) > tight
+
+
+def test_pf_fixed_count_when_min_equals_max():
+    t = make_tracker("pf-xy", [0, 0], np.eye(2), seed=3, n_particles=300, min_particles=300)
+    t.update(Fix(1.0, 0.0, 0, np.eye(2) * 0.01))
+    assert len(t.particles) == 300
+
+
+@pytest.mark.parametrize("name", ["pf", "pf-xy"])
+def test_pf_state_is_packed_and_restores_exactly(name):
+    import json
+
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker(name, [3.0, 4.0], np.eye(2), seed=5)
+    t.predict(Step(1.0, 0.7, 45.0))
+    t.update(Fix(3.5, 4.5, 0, np.eye(2) * 2.0))
+    data = json.loads(json.dumps(t.to_dict()))
+    assert isinstance(data["state"]["particles"], dict)  # packed, not a list of numbers
+    back = tracker_from_dict(data)
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_array_equal(back.weights, t.weights)
+    for tr in (t, back):
+        tr.predict(Step(2.0, 0.7, 90.0))
+    np.testing.assert_array_equal(back.particles, t.particles)
+
+
+def test_pf_state_stored_as_lists_still_loads():
+    """States stored before packing hold plain lists of numbers (and 1,000 particles)."""
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker("pf-xy", [0.0, 0.0], np.eye(2), seed=5)
+    data = t.to_dict()
+    data["state"]["particles"] = t.particles.tolist()
+    data["state"]["weights"] = t.weights.tolist()
+    back = tracker_from_dict(data)
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_allclose(back.mean, t.mean)

@@ -19,7 +19,14 @@ draw lands inside, the step is applied without the test rather than losing the t
 Many walls (a real plan) are tested through ``floorplan.WallIndex``.
 Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
 fix.covariance, and resamples when N_eff < resample_threshold·N.
-Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()``.
+
+The particle count adapts (KLD-sampling, ``resampling.kld_count``): each resampling draws
+as many particles as the cloud's spread needs, between ``min_particles`` and
+``n_particles`` (equal values: a fixed count); a reset starts with ``n_particles``.
+Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()`` with
+the particles and weights packed as float32 (``packed``). Particles and weights are kept
+float32-exact in memory too (``_quantize`` after every change), so a restored filter
+continues exactly as the one that was stored.
 """
 
 from __future__ import annotations
@@ -33,9 +40,17 @@ from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
 from server.estimation.tracking.measurements import parse_on_wall, range_usable
-from server.estimation.tracking.resampling import effective_sample_size, systematic_resample
+from server.estimation.tracking.packed import pack, unpack
+from server.estimation.tracking.resampling import effective_sample_size, kld_count, systematic_resample
 from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
 from server.estimation.types import Fix, Step
+
+#: KLD-sampling defaults, chosen on the tune scenarios of benchmarks/scenario_family.py
+#: (wknn and Gaussian fixes; min 100/200, ε 0.05–0.2, bins 0.5/1 m): same error as a fixed
+#: 1,000 particles (0.82 vs 0.83 m) with a stored state of 10.6 kB instead of 28 kB packed
+KLD_MIN_PARTICLES = 100
+KLD_BIN_M = 1.0
+KLD_EPSILON = 0.1
 
 
 @register
@@ -57,12 +72,22 @@ class ParticleFilterXYTracker(Tracker):
         q: float = 0.01,
         resample_threshold: float = 0.5,
         max_range_m: float = 3.0,
+        min_particles: int = KLD_MIN_PARTICLES,
+        kld_bin_m: float = KLD_BIN_M,
+        kld_epsilon: float = KLD_EPSILON,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         if n_particles < 2:
             raise ValueError("n_particles must be at least 2")
+        if not 2 <= min_particles <= n_particles:
+            raise ValueError("min_particles must be between 2 and n_particles")
+        if kld_bin_m <= 0 or kld_epsilon <= 0:
+            raise ValueError("kld_bin_m and kld_epsilon must be positive")
         self.params = {
             "n_particles": int(n_particles),
+            "min_particles": int(min_particles),
+            "kld_bin_m": float(kld_bin_m),
+            "kld_epsilon": float(kld_epsilon),
             "q": float(q),
             "resample_threshold": float(resample_threshold),
             "max_range_m": float(max_range_m),
@@ -75,7 +100,7 @@ class ParticleFilterXYTracker(Tracker):
 
     # -- filter -------------------------------------------------------------------
     def predict(self, step: Step) -> None:
-        n = self.params["n_particles"]
+        n = len(self.particles)
         d = step.length_m + step.length_std_m * self.rng.standard_normal(n)
         h = math.radians(step.heading_deg) + math.radians(step.heading_std_deg) * self.rng.standard_normal(n)
         move = np.column_stack((d * np.sin(h), d * np.cos(h)))
@@ -118,6 +143,10 @@ class ParticleFilterXYTracker(Tracker):
     def _settle(self, moved: np.ndarray, step_m: float) -> None:
         """Move the particles to ``moved`` (same columns), killing those whose move crosses a
         wall or ends outside the walkable area; the rule when all would die is the module's."""
+        self._move(moved, step_m)
+        self._quantize()
+
+    def _move(self, moved: np.ndarray, step_m: float) -> None:
         old = self.particles
         dead = self._crosses(old[:, :2], moved[:, :2])
         if self.walkable is not None:
@@ -134,13 +163,13 @@ class ParticleFilterXYTracker(Tracker):
             redrawn = self._redraw(old, step_m)
             if redrawn is not None:
                 self.particles = redrawn
-                self.weights = np.full(self.params["n_particles"], 1.0 / self.params["n_particles"])
+                self.weights = np.full(len(redrawn), 1.0 / len(redrawn))
 
     def _redraw(self, old: np.ndarray, step_m: float, tries: int = 4) -> np.ndarray | None:
         """n particles around the weighted mean of ``old`` (spread its covariance + step_m²·I),
         only inside the walkable area; None when no draw lands there."""
         assert self.walkable is not None
-        n = self.params["n_particles"]
+        n = len(old)
         m = self.weights @ old[:, :2]
         diff = old[:, :2] - m
         P = (diff * self.weights[:, None]).T @ diff + (step_m**2 + self.params["q"]) * np.eye(2)
@@ -162,14 +191,27 @@ class ParticleFilterXYTracker(Tracker):
             return False  # the measurement is impossible for every particle: ignore it
         w = np.exp(logw - top)
         self.weights = w / w.sum()
-        if effective_sample_size(self.weights) < self.params["resample_threshold"] * self.params["n_particles"]:
+        if effective_sample_size(self.weights) < self.params["resample_threshold"] * len(self.weights):
             self._resample()
+        self._quantize()
         return True
 
     def _resample(self) -> None:
-        idx = systematic_resample(self.weights, float(self.rng.random()))
+        """Systematic resampling to the count the cloud needs (KLD-sampling)."""
+        p = self.params
+        # the weighted cloud's bins, approximated by the particles that carry weight
+        n = kld_count(self.particles[self.weights > 0, :2], p["kld_bin_m"], p["kld_epsilon"],
+                      p["min_particles"], p["n_particles"])
+        idx = systematic_resample(self.weights, float(self.rng.random()), n)
         self.particles = self.particles[idx]
-        self.weights = np.full(self.params["n_particles"], 1.0 / self.params["n_particles"])
+        self.weights = np.full(n, 1.0 / n)
+        self._quantize()
+
+    def _quantize(self) -> None:
+        """Round particles and weights to float32 values (kept as float64 arrays): what
+        ``to_dict`` stores is then exactly what the filter holds."""
+        self.particles = self.particles.astype(np.float32).astype(float)
+        self.weights = self.weights.astype(np.float32).astype(float)
 
     # -- estimate -----------------------------------------------------------------
     @property
@@ -187,26 +229,33 @@ class ParticleFilterXYTracker(Tracker):
         L = np.linalg.cholesky(as_cov(cov))
         self.particles = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
         self.weights = np.full(n, 1.0 / n)
+        self._quantize()
 
     def inflate(self, factor: float) -> None:
         """Spread the particles about their mean by √factor (every column), weights kept."""
         m = self.weights @ self.particles
         self.particles = m + math.sqrt(float(factor)) * (self.particles - m)
+        self._quantize()
 
     # -- persistence --------------------------------------------------------------
     def _state(self) -> dict:
+        uniform = bool(np.all(self.weights == self.weights[0]))  # then None: 1/n on load
         return {
             "mean": self.mean.tolist(),
             "cov": self.covariance.tolist(),
-            "particles": self.particles.tolist(),
-            "weights": self.weights.tolist(),
+            "particles": pack(self.particles),
+            "weights": None if uniform else pack(self.weights),  # None: uniform (after a resampling)
             "rng": rng_state(self.rng),
         }
 
     def _load_state(self, state: dict) -> None:
-        n = self.params["n_particles"]
-        self.particles = np.asarray(state["particles"], float).reshape(n, self.dim)
-        self.weights = np.asarray(state["weights"], float).reshape(n)
+        particles = unpack(state["particles"])
+        n = particles.size // self.dim
+        if not 2 <= n <= self.params["n_particles"] or particles.size != n * self.dim:
+            raise ValueError(f"stored particles do not fit {self.params['n_particles']} × {self.dim}")
+        self.particles = particles.reshape(n, self.dim)
+        self.weights = np.full(n, 1.0 / n) if state["weights"] is None else unpack(state["weights"]).reshape(n)
+        self._quantize()
         self.rng = rng_from_state(state["rng"])
 
 
@@ -237,14 +286,18 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        min_particles: int = KLD_MIN_PARTICLES,
+        kld_bin_m: float = KLD_BIN_M,
+        kld_epsilon: float = KLD_EPSILON,
     ):
         self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed, n_particles=n_particles, q=q,
-                         resample_threshold=resample_threshold, max_range_m=max_range_m)
+                         resample_threshold=resample_threshold, max_range_m=max_range_m,
+                         min_particles=min_particles, kld_bin_m=kld_bin_m, kld_epsilon=kld_epsilon)
         self.params.update(self._cal)
 
     def predict(self, step: Step) -> None:
-        n = self.params["n_particles"]
+        n = len(self.particles)
         rng = self.rng
         P = self.particles
         P[:, 2] += math.radians(self._cal["bias_walk_deg"]) * rng.standard_normal(n)
@@ -262,18 +315,20 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         L = np.linalg.cholesky(as_cov(cov))
         xy = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
         old = getattr(self, "particles", None)
-        if old is None or old.shape != (n, 4):
+        if old is None or old.shape[1:] != (4,):
             cal = np.column_stack((math.radians(self._cal["bias0_std_deg"]) * self.rng.standard_normal(n),
                                    np.clip(1.0 + self._cal["scale0_std"] * self.rng.standard_normal(n),
                                            *selfcal.SCALE_RANGE)))
         else:  # keep the calibration the particles learned (their weights carry over to it)
-            cal = old[systematic_resample(self.weights, float(self.rng.random())), 2:]
+            cal = old[systematic_resample(self.weights, float(self.rng.random()), n), 2:]
         self.particles = np.column_stack((xy, cal))
         self.weights = np.full(n, 1.0 / n)
+        self._quantize()
 
     def inflate(self, factor: float) -> None:
         super().inflate(factor)
         self.particles[:, 3] = np.clip(self.particles[:, 3], *selfcal.SCALE_RANGE)
+        self._quantize()
 
     @property
     def state_mean(self) -> np.ndarray:

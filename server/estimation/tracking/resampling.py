@@ -9,13 +9,15 @@ function to filterpy's output for the same offset.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
-def systematic_resample(weights: np.ndarray, u: float) -> np.ndarray:
-    """Indexes of the resampled particles for offset u in [0, 1)."""
+def systematic_resample(weights: np.ndarray, u: float, n: int | None = None) -> np.ndarray:
+    """Indexes of ``n`` (default: as many as weights) resampled particles for offset u in [0, 1)."""
     w = np.asarray(weights, float)
-    n = w.shape[0]
+    n = w.shape[0] if n is None else int(n)
     positions = (u + np.arange(n)) / n
     cumulative = np.cumsum(w)
     cumulative[-1] = max(cumulative[-1], 1.0)  # guard against round-off below 1
@@ -24,3 +26,17 @@ def systematic_resample(weights: np.ndarray, u: float) -> np.ndarray:
 
 def effective_sample_size(weights: np.ndarray) -> float:
     return float(1.0 / np.sum(np.square(weights)))
+
+
+def kld_count(xy: np.ndarray, bin_m: float, epsilon: float, n_min: int, n_max: int, z: float = 2.326) -> int:
+    """How many particles a cloud needs (KLD-sampling, Fox 2003): enough that, with
+    probability Φ(z) (0.99), the K–L divergence between the particle approximation and
+    the true posterior stays below ``epsilon``, given the k bins (``bin_m`` squares) the
+    positions ``xy`` occupy — a tight cloud needs few particles, a spread one many.
+    Bounded to [n_min, n_max]."""
+    k = len(np.unique(np.floor(np.asarray(xy, float) / bin_m).astype(np.int64), axis=0))
+    if k <= 1:
+        return int(n_min)
+    a = 2.0 / (9.0 * (k - 1))
+    n = (k - 1) / (2.0 * epsilon) * (1.0 - a + math.sqrt(a) * z) ** 3
+    return int(min(max(math.ceil(n), n_min), n_max))
