@@ -118,11 +118,15 @@ def process_noise(q: float, params: dict) -> np.ndarray:
     return np.diag([q, q, math.radians(params["bias_walk_deg"]) ** 2, params["scale_walk"] ** 2])
 
 
-def clamp(x: np.ndarray) -> np.ndarray:
+def clamp_calibration(b: float, s: float) -> tuple[float, float]:
     """Bias wrapped to (−π, π], scale kept in ``SCALE_RANGE``."""
+    return math.remainder(b, 2 * math.pi), min(max(s, SCALE_RANGE[0]), SCALE_RANGE[1])
+
+
+def clamp(x: np.ndarray) -> np.ndarray:
+    """``clamp_calibration`` on a state [x, y, b, s] (a new array)."""
     x = np.asarray(x, float).copy()
-    x[2] = math.remainder(float(x[2]), 2 * math.pi)
-    x[3] = min(max(float(x[3]), SCALE_RANGE[0]), SCALE_RANGE[1])
+    x[2], x[3] = clamp_calibration(float(x[2]), float(x[3]))
     return x
 
 

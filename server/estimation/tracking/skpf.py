@@ -1,7 +1,7 @@
 """SKPF: sigma-point Kalman particle filter, as DESIGN.md gives it.
 
 ``skpf`` is the self-calibrating form (``SKPFTracker`` at the end: n = 4, state
-[x, y, b, s], written with NumPy); ``skpf-xy`` the two-state seed form described first.
+[x, y, b, s], also written out on Python floats); ``skpf-xy`` the two-state seed form described first.
 
 With n = 2 (state [x, y]):
 - the 2n symmetric sigma points χ_i = x ± √n·(columns of √P), weights 1/2n, are drawn
@@ -177,28 +177,28 @@ class SKPFXYTracker(Tracker):
         self._set(np.asarray(state["mean"], float), np.asarray(state["cov"], float))
 
 
-def _chol4(P: list[list[float]]) -> list[list[float]]:
-    """Lower Cholesky factor of a 4×4 symmetric matrix (lists); a round-off floor keeps
-    a near-singular P defined."""
-    L = [[0.0] * 4 for _ in range(4)]
-    for j in range(4):
-        s = P[j][j] - sum(L[j][k] * L[j][k] for k in range(j))
-        L[j][j] = math.sqrt(max(s, 1e-18))
-        for i in range(j + 1, 4):
-            L[i][j] = (P[i][j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
-    return L
+def _chol4(a00: float, a01: float, a02: float, a03: float, a11: float, a12: float, a13: float, a22: float,
+           a23: float, a33: float) -> tuple[tuple[float, float, float, float], ...]:
+    """Columns of the lower Cholesky factor of a symmetric 4×4 matrix (its upper triangle
+    given), unrolled on floats; a round-off floor keeps a near-singular P defined."""
+    l00 = math.sqrt(max(a00, 1e-18))
+    l10, l20, l30 = a01 / l00, a02 / l00, a03 / l00
+    l11 = math.sqrt(max(a11 - l10 * l10, 1e-18))
+    l21, l31 = (a12 - l20 * l10) / l11, (a13 - l30 * l10) / l11
+    l22 = math.sqrt(max(a22 - l20 * l20 - l21 * l21, 1e-18))
+    l32 = (a23 - l30 * l20 - l31 * l21) / l22
+    l33 = math.sqrt(max(a33 - l30 * l30 - l31 * l31 - l32 * l32, 1e-18))
+    return (l00, l10, l20, l30), (0.0, l11, l21, l31), (0.0, 0.0, l22, l32), (0.0, 0.0, 0.0, l33)
 
 
-_POINTS4 = JulierSigmaPoints(selfcal.N_AUG, kappa=0.0)
 _SQRT_N4 = math.sqrt(selfcal.N_AUG)
 _W4 = 1.0 / (2 * selfcal.N_AUG)
+#: (i, k) of a 4×4 matrix's upper triangle, row by row
+_UPPER4 = tuple((i, k) for i in range(4) for k in range(i, 4))
 
 
-def symmetric_sigma_points4(x: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """The 2n = 8 points x ± √n·(columns of chol(P)), weights 1/8 each (filterpy's
-    ``JulierSigmaPoints(4, kappa=0)`` without its zero-weight centre point)."""
-    cols = _SQRT_N4 * np.linalg.cholesky(P)
-    return np.vstack((x + cols.T, x - cols.T))
+def _wdot(a: list[float], b: list[float]) -> float:
+    return _W4 * sum(p * q for p, q in zip(a, b, strict=True))
 
 
 @register
@@ -251,44 +251,42 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         # JulierSigmaPoints + unscented_transform by the tests.
         h = math.radians(step.heading_deg)
         d = step.length_m
-        xs = self.x.tolist()
-        P = self.P.tolist()
-        L = _chol4(P)
-        pts = []
-        for j in range(4):
-            col = [2.0 * L[i][j] for i in range(4)]  # √n = 2
-            for sign in (1.0, -1.0):
-                b = xs[2] + sign * col[2]
-                sd = (xs[3] + sign * col[3]) * d
-                pts.append((xs[0] + sign * col[0] + sd * math.sin(h + b), xs[1] + sign * col[1] + sd * math.cos(h + b),
-                            b, xs[3] + sign * col[3]))
-        m = [sum(p[i] for p in pts) * _W4 for i in range(4)]
-        dev = [[p[i] - m[i] for i in range(4)] for p in pts]
-        C = [[0.0] * 4 for _ in range(4)]
-        for i in range(4):
-            for k in range(i, 4):
-                C[i][k] = C[k][i] = _W4 * sum(v[i] * v[k] for v in dev)
+        x0, x1, x2, x3 = self.x.tolist()
+        (a00, a01, a02, a03), (_, a11, a12, a13), (_, _, a22, a23), (_, _, _, a33) = self.P.tolist()
+        X0: list[float] = []
+        X1: list[float] = []
+        X2: list[float] = []
+        X3: list[float] = []
+        for c0, c1, c2, c3 in _chol4(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33):
+            c0, c1, c2, c3 = _SQRT_N4 * c0, _SQRT_N4 * c1, _SQRT_N4 * c2, _SQRT_N4 * c3
+            for sg in (1.0, -1.0):
+                b, sc = x2 + sg * c2, x3 + sg * c3
+                X0.append(x0 + sg * c0 + sc * d * math.sin(h + b))
+                X1.append(x1 + sg * c1 + sc * d * math.cos(h + b))
+                X2.append(b)
+                X3.append(sc)
+        m0, m1, m2, m3 = sum(X0) * _W4, sum(X1) * _W4, sum(X2) * _W4, sum(X3) * _W4
+        D0, D1 = [v - m0 for v in X0], [v - m1 for v in X1]
+        D2, D3 = [v - m2 for v in X2], [v - m3 for v in X3]
         # + diag(q, q, σb², σs²) and G diag(σd², σh²) Gᵀ at the mean (its position block only).
         q = self._q_diag
         vd, vh = selfcal.step_input_var(step)
-        sc2 = m[3] * m[3]
-        a = h + m[2]
-        sa, ca = math.sin(a), math.cos(a)
+        sc2 = m3 * m3
+        sa, ca = math.sin(h + m2), math.cos(h + m2)
         vdh = d * d * vh
-        C[0][0] += sc2 * (sa * sa * vd + ca * ca * vdh) + q[0]
-        C[1][1] += sc2 * (ca * ca * vd + sa * sa * vdh) + q[1]
-        C[0][1] += sc2 * sa * ca * (vd - vdh)
-        C[1][0] = C[0][1]
-        C[2][2] += q[2]
-        C[3][3] += q[3]
-        self.x = np.array(m)
-        self.P = np.array(C)
+        c00 = _wdot(D0, D0) + sc2 * (sa * sa * vd + ca * ca * vdh) + q[0]
+        c11 = _wdot(D1, D1) + sc2 * (ca * ca * vd + sa * sa * vdh) + q[1]
+        c01 = _wdot(D0, D1) + sc2 * sa * ca * (vd - vdh)
+        c02, c03, c12, c13 = _wdot(D0, D2), _wdot(D0, D3), _wdot(D1, D2), _wdot(D1, D3)
+        c22, c23, c33 = _wdot(D2, D2) + q[2], _wdot(D2, D3), _wdot(D3, D3) + q[3]
+        self.x = np.array((m0, m1, m2, m3))
+        self.P = np.array(((c00, c01, c02, c03), (c01, c11, c12, c13), (c02, c12, c22, c23), (c03, c13, c23, c33)))
 
     def update(self, fix: Fix) -> None:
         r00, r01, r11 = fix_cov_entries(fix.covariance)
-        x, P = self.x, self.P
-        x0, x1 = float(x[0]), float(x[1])
-        p00, p01, p11 = float(P[0, 0]), float(P[0, 1]), float(P[1, 1])
+        x0, x1, x2, x3 = self.x.tolist()
+        P = self.P.tolist()
+        p00, p01, p11 = P[0][0], P[0][1], P[1][1]
         # Position: the seed form's rule on the position marginal (its 4 sigma points).
         pos0, pos1, self._last_weights = _reweighted_mean(x0, x1, p00, p01, p11, float(fix.x), float(fix.y),
                                                           r00, r01, r11)
@@ -297,17 +295,18 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         det = p00 * p11 - p01 * p01
         d0, d1 = pos0 - x0, pos1 - x1
         a0, a1 = (p11 * d0 - p01 * d1) / det, (p00 * d1 - p01 * d0) / det
-        b = float(x[2]) + float(P[2, 0]) * a0 + float(P[2, 1]) * a1
-        sc = float(x[3]) + float(P[3, 0]) * a0 + float(P[3, 1]) * a1
+        b = x2 + P[2][0] * a0 + P[2][1] * a1
+        sc = x3 + P[3][0] * a0 + P[3][1] * a1
         # Covariance: S = P_pp + R and Pxz = P[:, :2] (the UT of h(χ) = χ[:2], exact), so
-        # P⁺ = P − K S Kᵀ = P − P[:, :2] S⁻¹ P[:2, :].
+        # P⁺ = P − K S Kᵀ = P − P[:, :2] S⁻¹ P[:2, :] (symmetric: its upper triangle, mirrored).
         s00, s01, s11 = p00 + r00, p01 + r01, p11 + r11
         det_s = s00 * s11 - s01 * s01
-        Pc = P[:, :2]
-        K = Pc @ np.array([[s11 / det_s, -s01 / det_s], [-s01 / det_s, s00 / det_s]])
-        Pn = P - K @ Pc.T
-        self.x = selfcal.clamp(np.array([pos0, pos1, b, sc]))
-        self.P = 0.5 * (Pn + Pn.T)
+        i00, i01, i11 = s11 / det_s, -s01 / det_s, s00 / det_s
+        K = [(row[0] * i00 + row[1] * i01, row[0] * i01 + row[1] * i11) for row in P]  # P[:, :2] S⁻¹
+        n00, n01, n02, n03, n11, n12, n13, n22, n23, n33 = (
+            P[i][k] - (K[i][0] * P[k][0] + K[i][1] * P[k][1]) for i, k in _UPPER4)
+        self.x = np.array((pos0, pos1, *selfcal.clamp_calibration(b, sc)))
+        self.P = np.array(((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33)))
 
     @property
     def state_mean(self) -> np.ndarray:
