@@ -412,6 +412,16 @@ class ModelMetrics(BaseModel):
     activation: ActivationOut | None = Field(None, description="Whether training activated the model, and why.")
 
 
+class HeldOutPointErrorOut(BaseModel):
+    building: int = 0
+    floor: int
+    x: float = Field(description=X_DOC)
+    y: float = Field(description=Y_DOC)
+    label: str
+    n: int = Field(description="Held-out scans at this reference point.")
+    mean_error_m: float = Field(description="Their mean horizontal error (m).")
+
+
 class ModelOut(BaseModel):
     id: int
     site_id: int

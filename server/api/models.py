@@ -6,7 +6,7 @@ from fastapi import APIRouter, status
 
 from server.api.deps import Admin, Models, PathId
 from server.domain import ModelInfo, ModelSpec
-from server.schemas import ModelIn, ModelOut
+from server.schemas import HeldOutPointErrorOut, ModelIn, ModelOut
 
 router = APIRouter(prefix="/api/v1/sites/{site_id}/models", tags=["models"])
 
@@ -36,6 +36,15 @@ def list_models(site_id: PathId, models: Models, _: Admin) -> list[ModelOut]:
 @router.get("/{model_id}", response_model=ModelOut)
 def get_model(site_id: PathId, model_id: PathId, models: Models, _: Admin) -> ModelOut:
     return model_out(models.get(site_id, model_id))
+
+
+@router.get("/{model_id}/errors", response_model=list[HeldOutPointErrorOut],
+            responses={409: {"description": "Model not ready."}})
+def held_out_errors(site_id: PathId, model_id: PathId, models: Models, _: Admin) -> list[HeldOutPointErrorOut]:
+    """Extension: each reference point of the model's held-out sample with its mean error (m),
+    from training (at most 1,000 held-out scans, stratified by building and floor); empty for
+    a model trained on too few fingerprints to validate."""
+    return [HeldOutPointErrorOut.model_validate(p, from_attributes=True) for p in models.held_out_errors(site_id, model_id)]
 
 
 @router.post("/{model_id}/activate", response_model=ModelOut, responses={409: {"description": "Model not ready."}})

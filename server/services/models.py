@@ -8,9 +8,9 @@ from collections.abc import Callable
 from sqlalchemy.orm import Session
 
 from server.db import Database
-from server.domain import ModelInfo, ModelSpec
+from server.domain import HeldOutPointError, ModelInfo, ModelSpec
 from server.errors import Conflict, InvalidField, NotFound
-from server.services.training import build_model
+from server.services.training import build_model, held_out_points
 from server.store import models as store
 from server.store import sites as site_store
 
@@ -46,6 +46,15 @@ class ModelService:
     def get(self, site_id: int, model_id: int) -> ModelInfo:
         with self._db.transaction() as s:
             return _existing(s, site_id, model_id)
+
+    def held_out_errors(self, site_id: int, model_id: int) -> list[HeldOutPointError]:
+        """Each held-out reference point's mean error, as the model's training measured it
+        (where the radio map is weak); 409 until the model is ready."""
+        with self._db.transaction() as s:
+            model = _existing(s, site_id, model_id)
+        if model.status != "ready":
+            raise Conflict(f"model {model_id} is {model.status}; held-out errors exist once it is ready")
+        return held_out_points(model.metrics)
 
     def activate(self, site_id: int, model_id: int) -> ModelInfo:
         """Swap the site's active model in one transaction; only a ready model can serve."""

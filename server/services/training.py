@@ -19,14 +19,16 @@ import signal
 import threading
 import time
 import traceback
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
+import numpy as np
 from sqlalchemy.exc import IntegrityError
 
 from server.db import Database
-from server.domain import Activation, FingerprintRecord, ModelInfo, ModelSpec, Transmitter
+from server.domain import Activation, FingerprintRecord, HeldOutPointError, ModelInfo, ModelSpec, Transmitter
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
 from server.estimation.fingerprint.metrics import Validation
 from server.store import models as store
@@ -73,25 +75,28 @@ def run_training_job(database_url: str, model_id: int) -> str:
             site_id, spec = job.site_id, job.spec
             rows = survey_store.training_rows(s, site_id, spec.include_crowd)
             transmitters = site_store.positioned_transmitters(s, site_id)
+        trained_on = len(rows)
+        fs = FingerprintSet.from_rows([_row(r) for r in rows], dtype=np.float32) if rows else None
+        del rows  # the records' dicts cost more than the matrix: keep only the matrix
         try:
-            model, metrics = _fit(rows, spec, transmitters)
+            model, metrics = _fit(fs, spec, transmitters)
+            del fs
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin
             log.warning("training model %s failed:\n%s", model_id, traceback.format_exc())
             with db.transaction() as s:
                 store.fail_training(s, model_id, f"{type(exc).__name__}: {exc}")
             return "failed"
-        return "ready" if _store(db, site_id, model_id, blob, len(rows), metrics, spec.activate) else "gone"
+        return "ready" if _store(db, site_id, model_id, blob, trained_on, metrics, spec.activate) else "gone"
     finally:
         db.dispose()
 
 
-def _fit(rows: list[FingerprintRecord], spec: ModelSpec, transmitters: list[Transmitter]):
+def _fit(fs: FingerprintSet | None, spec: ModelSpec, transmitters: list[Transmitter]):
     def factory():
         return build_model(spec.algorithm, dict(spec.params), spec.use_heading, list(spec.kinds),
                            [asdict(t) for t in transmitters])
 
-    fs = FingerprintSet.from_rows([_row(r) for r in rows]) if rows else None
     if fs is None:
         if spec.algorithm != "propagation":
             raise ValueError("the site has no fingerprints to train on")
@@ -117,6 +122,17 @@ def metrics_record(v: Validation) -> dict[str, Any]:
                "points": [[p.building, p.floor, round(p.x, 2), round(p.y, 2), p.label, p.n, round(p.mean_error_m, 2)]
                           for p in v.points]}
     return _finite(figures)
+
+
+def held_out_points(metrics: Mapping[str, Any] | None) -> list[HeldOutPointError]:
+    """The ``points`` of a `metrics_record`, as domain records (none for a model trained on too
+    few fingerprints to validate, or before this record existed)."""
+    out = []
+    for row in (metrics or {}).get("points") or []:
+        b, f, x, y, label, n, err = row
+        if err is not None:
+            out.append(HeldOutPointError(int(b), int(f), float(x), float(y), str(label), int(n), float(err)))
+    return out
 
 
 def _finite(o: Any) -> Any:

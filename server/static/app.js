@@ -13,7 +13,10 @@ const S = {
   tracks: new Map(), // session id -> {pts: [{idx, x, y, floor, covariance}], color, status}
   streams: [], bounds: null, replayTimer: null, algorithms: [], coverage: "",
   measured: null, // {tx, floor, body}: GET /coverage for the chosen transmitter and floor
+  errors: null, // {model, points}: GET /models/{id}/errors of the active model
 };
+// Held-out error layer: the colour scale's top (m); larger errors get its colour.
+const ERR_TOP_M = 10;
 // Coverage layer: measured where the floor has reference points (GET /api/v1/sites/{id}/coverage:
 // the mean RSS of the transmitter at each reference point), else a transmitter's RSS from the
 // log-distance model the server's radio code uses (R0 at 1 m, exponent γ; -45 dBm and 2.5 when
@@ -182,6 +185,7 @@ async function selectSite(id) {
   stopStreams();
   S.site = S.sites.find((s) => s.id === id);
   S.tracks.clear();
+  S.errors = null;
   history.replaceState(null, "", `#site=${id}`);
   for (const item of $("sites").children) item.classList.toggle("selected", Number(item.dataset.site) === id);
   $("site-name").textContent = S.site.name;
@@ -296,6 +300,7 @@ function drawMeasured(svg, b, m) {
 $("show-rps").addEventListener("change", (e) => $("map").classList.toggle("hide-rps", !e.target.checked));
 $("show-tx").addEventListener("change", (e) => $("map").classList.toggle("hide-tx", !e.target.checked));
 $("show-smoothed").addEventListener("change", () => drawSessions());
+$("show-errors").addEventListener("change", () => drawMap());
 
 // The map's extent in metres: the floors' declared size, walls, reference points, transmitters, tracks.
 function computeBounds() {
@@ -354,6 +359,7 @@ function drawMap() {
   }
   if (S.site) {
     drawCoverage(svg, b);
+    drawErrors(svg, b);
     const floor = S.site.floors.find((f) => f.level === S.floor);
     const walls = el("g", { id: "walls" }, svg);
     for (const w of floor ? floor.walls : []) el("line", { x1: X(w[0]), y1: Y(w[1]), x2: X(w[2]), y2: Y(w[3]), class: "wall" }, walls);
@@ -374,6 +380,39 @@ function drawMap() {
   }
   el("g", { id: "sessions-layer" }, svg);
   drawSessions();
+}
+
+// The active model's held-out error per reference point (GET …/models/{id}/errors): a disc per
+// point of the shown floor, green (0 m) … red (ERR_TOP_M or more).
+const errColor = (m) => `hsl(${120 * (1 - Math.min(1, Math.max(0, m / ERR_TOP_M)))}, 80%, 45%)`;
+
+async function loadErrors() {
+  const site = S.site, active = S.models.find((m) => m.active && m.status === "ready");
+  if (!active) { S.errors = null; return; }
+  if (S.errors && S.errors.model === active.id) return;
+  try {
+    const points = await api(`/api/v1/sites/${site.id}/models/${active.id}/errors`);
+    if (S.site === site) S.errors = { model: active.id, points };
+  } catch (err) {
+    S.errors = null;
+    setStatus(`held-out error: ${err.message}`);
+  }
+}
+
+function drawErrors(svg, b) {
+  const on = $("show-errors").checked && !!S.errors;
+  $("errors-legend").hidden = !on;
+  if (!on) return;
+  $("errors-model").textContent = ` (model ${S.errors.model})`;
+  $("errors-top").textContent = String(ERR_TOP_M);
+  const g = el("g", { id: "errors-layer" }, svg);
+  const r = b.size / 70;
+  const building = S.building ?? 0;
+  for (const p of S.errors.points.filter((q) => q.floor === S.floor && (q.building ?? 0) === building)) {
+    const c = el("circle", { cx: X(p.x), cy: Y(p.y), r, class: "err", fill: errColor(p.mean_error_m),
+      "data-label": p.label, "data-error": p.mean_error_m.toFixed(2) }, g);
+    el("title", {}, c).textContent = `${p.label}: held-out mean error ${p.mean_error_m.toFixed(2)} m over ${p.n} scan${p.n === 1 ? "" : "s"}`;
+  }
 }
 
 // --- sessions: live, replayed ----------------------------------------------------------------
@@ -599,6 +638,9 @@ async function loadModels() {
     body.append(tr);
   }
   if (S.models.some((m) => m.status === "queued" || m.status === "training")) setTimeout(() => S.site && loadModels(), 3000);
+  const shown = S.errors && S.errors.model;
+  await loadErrors();
+  if ((S.errors && S.errors.model) !== shown) drawMap();
 }
 
 $("train-form").addEventListener("submit", async (e) => {

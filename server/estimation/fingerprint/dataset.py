@@ -67,7 +67,7 @@ def rp_display_label(key: tuple) -> str:
 class FingerprintSet:
     """Fingerprints as numpy arrays (one row each).
 
-    rss: (n, m) dBm, NaN = not heard; tx_ids: the m transmitter ids (``wifi:...``,
+    rss: (n, m) dBm, NaN = not heard (float64, or float32 when built so); tx_ids: the m transmitter ids (``wifi:...``,
     ``ble:...``); x, y: metres; floor: int; heading_deg: NaN when unknown;
     label: reference-point key (None when rows are grouped by position);
     building: int (0 unless the data set has buildings); user/device: optional
@@ -106,7 +106,9 @@ class FingerprintSet:
         meta: dict | None = None,
     ) -> None:
         self.tx_ids = [str(tx) for tx in tx_ids]
-        self.rss = np.asarray(rss, dtype=float).reshape(-1, len(self.tx_ids))
+        rss = np.asarray(rss)  # float32 is kept as it is (a large training set's memory), else float64
+        self.rss = rss.reshape(-1, len(self.tx_ids)) if rss.dtype == np.float32 else \
+            np.asarray(rss, dtype=float).reshape(-1, len(self.tx_ids))
         n = self.rss.shape[0]
         if len(set(self.tx_ids)) != len(self.tx_ids):
             raise ValueError("duplicate transmitter ids")
@@ -130,18 +132,19 @@ class FingerprintSet:
     # ---- construction -------------------------------------------------------------
     @classmethod
     def from_rows(
-        cls, rows: Iterable[Mapping], tx_ids: Sequence[str] | None = None
+        cls, rows: Iterable[Mapping], tx_ids: Sequence[str] | None = None, dtype: type = float,
     ) -> FingerprintSet:
         """Build from row dicts as the server stores them:
         ``{x, y, floor, rss: {tx_id: dBm}, heading_deg?, label?, device?, user?, t?,
         building?}``. Transmitters are the sorted union of the rows' ids unless
-        ``tx_ids`` is given (ids outside it are dropped)."""
+        ``tx_ids`` is given (ids outside it are dropped). ``dtype=np.float32`` halves
+        the RSS matrix (the server's training)."""
         rows = list(rows)
         if tx_ids is None:
             tx_ids = sorted({tx for r in rows for tx in r["rss"]})
         tx_ids = list(tx_ids)
         col = {tx: j for j, tx in enumerate(tx_ids)}
-        rss = np.full((len(rows), len(tx_ids)), np.nan)
+        rss: np.ndarray = np.full((len(rows), len(tx_ids)), np.nan, dtype=dtype)
         for i, r in enumerate(rows):
             for tx, v in r["rss"].items():
                 j = col.get(tx)

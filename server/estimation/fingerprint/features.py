@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 MISSING_MODES = ("powed", "floor", "exponential")
+#: rows encoded at once by `RssEncoder.transform`
+TRANSFORM_BLOCK_ROWS = 4096
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,18 @@ class RssEncoder:
             raise ValueError("floor_dbm must be negative")
 
     def transform(self, rss: np.ndarray) -> np.ndarray:
-        """(n, m) dBm with NaN = not heard → (n, m) float32 features, 0 = not heard."""
+        """(n, m) dBm with NaN = not heard → (n, m) float32 features, 0 = not heard.
+        Large matrices go through in blocks of rows, so the float64 temporaries stay
+        bounded (a training set's memory is then its float32 matrices)."""
+        rss = np.asarray(rss)
+        if rss.ndim == 2 and rss.shape[0] > TRANSFORM_BLOCK_ROWS:
+            out = np.empty(rss.shape, dtype=np.float32)
+            for s in range(0, rss.shape[0], TRANSFORM_BLOCK_ROWS):
+                out[s: s + TRANSFORM_BLOCK_ROWS] = self._transform(rss[s: s + TRANSFORM_BLOCK_ROWS])
+            return out
+        return self._transform(rss)
+
+    def _transform(self, rss: np.ndarray) -> np.ndarray:
         rss = np.asarray(rss, dtype=float)
         v = (np.clip(rss, self.floor_dbm, 0.0) - self.floor_dbm) / (-self.floor_dbm)
         v = np.where(np.isnan(v), 0.0, v)

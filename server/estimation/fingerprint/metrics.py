@@ -24,7 +24,7 @@ from .dataset import FingerprintSet, group_split, random_split
 from .posterior import Prediction
 
 #: held-out scans the training step measures on at most (a stratified sample)
-MAX_HELD_OUT = 2000
+MAX_HELD_OUT = 1000
 
 
 @dataclass
@@ -202,9 +202,11 @@ def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_
     an unfitted model. Returns (model, Validation)."""
     train, test, split = holdout_split(fs, how, test_fraction, seed)
     validated = model_factory().fit(train)
+    del train  # memory: one training set's matrices at a time
     v = validate(validated, test, split, n_single=50)
     m = model_factory()
     m.reuse_choices(validated)
+    del validated, test
     m.fit(fs)
     m.calibration_ = v.calibration
     v.metrics.fit_time_s = m.fit_time_s_

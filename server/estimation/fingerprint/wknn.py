@@ -56,6 +56,18 @@ CALIBRATIONS = ("rows", "points", "mixed", None)
 CV_FOLDS = 5
 
 
+def _row_keys(X: np.ndarray, row_rp: np.ndarray, block: int = 8192) -> np.ndarray:
+    """(n, 3) keys equal for equal (fingerprint, reference point) rows: two random projections
+    of the row (float64, in blocks: memory stays O(n)) and the reference point. Different rows
+    share both projections only by a coincidence of measure zero."""
+    P = np.random.default_rng(20261201).standard_normal((X.shape[1], 2))
+    out = np.empty((len(X), 3))
+    for s in range(0, len(X), block):
+        out[s: s + block, :2] = np.asarray(X[s: s + block], dtype=np.float64) @ P
+    out[:, 2] = row_rp
+    return out
+
+
 class WKNNModel(FingerprintModel):
     """k: neighbours for the position (None = chosen by cross-validation among
     ``k_grid``); distance: "sorensen" or "euclidean"; building_k / floor_k: neighbours
@@ -120,27 +132,34 @@ class WKNNModel(FingerprintModel):
         X = np.asarray(X, dtype=np.float32)
         keep_rows = np.ones(len(X), dtype=bool)
         if self.dedupe and len(X):
-            key = np.ascontiguousarray(np.column_stack([X, data.rp.row_rp.astype(np.float32)[:, None]]))
-            rows = key.view(np.dtype((np.void, key.dtype.itemsize * key.shape[1]))).ravel()
-            _, first = np.unique(rows, return_index=True)
+            _, first = np.unique(_row_keys(X, data.rp.row_rp), axis=0, return_index=True)
             keep_rows[:] = False
             keep_rows[first] = True
         heard = (X[keep_rows] > 0).sum(axis=0)
         self.tx_active_ = heard >= max(self.min_tx_rows, 1)
         if not self.tx_active_.any():
             self.tx_active_ = heard > 0
-        self._set_matrix(X[keep_rows], None if H is None else H[keep_rows] * self.heading_weight_,
+        self._set_matrix(X, np.flatnonzero(keep_rows), None if H is None else H[keep_rows] * self.heading_weight_,
                          data.rp.row_rp[keep_rows], data.row_group[keep_rows])
         self.k_ = self.k if self.k is not None else 3
         self.coverage_threshold_ = getattr(self, "reused_coverage_threshold_", float("inf"))
         if self.k is None or self.calibrate is not None:
             self._cross_validate(data, keep_rows)
 
-    def _set_matrix(self, X, H, row_rp, row_group) -> None:
-        X = np.asarray(X, dtype=np.float32) * self.tx_active_[None, :]
-        self.XT_ = np.ascontiguousarray(X.T)  # (m, n): a transmitter's readings are contiguous
-        self.x_sum_ = X.sum(axis=1, dtype=np.float64)
-        self.x_sq_ = np.einsum("ij,ij->i", X, X, dtype=np.float64)
+    def _set_matrix(self, X, rows, H, row_rp, row_group, block: int = 8192) -> None:
+        """Store fingerprints ``X[rows]`` as the (m, n) matrix (a transmitter's readings
+        contiguous), copied in blocks of rows so no second (n, m) copy is ever made."""
+        XT = np.empty((X.shape[1], len(rows)), dtype=np.float32)
+        for s in range(0, len(rows), block):
+            XT[:, s: s + block] = X[rows[s: s + block]].T
+        XT *= self.tx_active_[:, None]
+        self._set_columns(XT, H, row_rp, row_group)
+
+    def _set_columns(self, XT, H, row_rp, row_group) -> None:
+        """Store an (m, n) matrix already in stored form (the cross-validation's folds are its columns)."""
+        self.XT_ = XT
+        self.x_sum_ = XT.sum(axis=0, dtype=np.float64)
+        self.x_sq_ = np.einsum("ji,ji->i", XT, XT, dtype=np.float64)
         self.H_ = None if H is None else np.asarray(H, dtype=np.float32)  # already weighted
         self.row_rp_ = np.asarray(row_rp, dtype=np.int64)
         self.row_group_ = np.asarray(row_group, dtype=np.int64)
@@ -165,8 +184,7 @@ class WKNNModel(FingerprintModel):
         covariance) — at held-out reference points ("points"), on held-out scans
         (users, else devices, else random rows) at reference points that stay in the map
         ("rows"), or on both pooled ("mixed")."""
-        fs = data.fs.subset(keep_rows)
-        n = len(fs)
+        n = int(keep_rows.sum())
         rng = np.random.default_rng(0)
         n_rp = int(self.row_rp_.max()) + 1 if n else 0
         fold_rp = (rng.permutation(n_rp) % CV_FOLDS)[self.row_rp_]
@@ -185,7 +203,7 @@ class WKNNModel(FingerprintModel):
             return
         parts = [held_rp[best]] if self.calibrate in ("points", "mixed") else []
         if self.calibrate in ("rows", "mixed"):
-            parts.append(self._row_pass(fs, rng)[0])
+            parts.append(self._row_pass(data.fs.subset(keep_rows), rng)[0])  # a copy only when asked
         self.calibration_ = fit_calibration(np.concatenate([r for r, _ in parts]),
                                             np.concatenate([c for _, c in parts]))
 
@@ -203,7 +221,7 @@ class WKNNModel(FingerprintModel):
     def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]], int]:
         """Sum of errors per k over the folds, the residuals and raw covariances of the
         held-out fixes per k, and the count of held-out scans."""
-        X_all, H_all = self.XT_.T, self.H_
+        XT_all, H_all = self.XT_, self.H_  # folds are column subsets: one fold's copy at a time
         rp_all, grp_all = self.row_rp_, self.row_group_
         errs = np.zeros(len(grid))
         res: list[list[np.ndarray]] = [[] for _ in grid]
@@ -218,10 +236,10 @@ class WKNNModel(FingerprintModel):
                     continue
                 if len(te) > self.cv_rows // CV_FOLDS:
                     te = np.sort(rng.choice(te, self.cv_rows // CV_FOLDS, replace=False))
-                self._set_matrix(X_all[tr], None if H_all is None else H_all[tr], rp_all[tr], grp_all[tr])
+                self._set_columns(XT_all[:, tr], None if H_all is None else H_all[tr], rp_all[tr], grp_all[tr])
                 Hq = None if H_all is None else H_all[te] / max(self.heading_weight_, 1e-12)
-                D = self._distances(X_all[te], Hq)
-                D = np.where(self.row_group_[None, :] == grp_all[te][:, None], D, np.inf)
+                D = self._distances(XT_all[:, te].T, Hq)
+                D[self.row_group_[None, :] != grp_all[te][:, None]] = np.inf  # in place: D is large
                 ok = np.isfinite(D).any(axis=1)  # a floor with no map left says nothing
                 D, te = D[ok], te[ok]
                 if not len(te):
@@ -238,7 +256,7 @@ class WKNNModel(FingerprintModel):
                     covs[i].append(pred.covariance)
                 count += len(te)
         finally:
-            self._set_matrix(X_all, H_all, rp_all, grp_all)
+            self._set_columns(XT_all, H_all, rp_all, grp_all)
         self._cv_nearest = np.concatenate(nearest) if nearest else np.zeros(0)
         held = [(np.concatenate(r) if r else np.zeros((0, 2)), np.concatenate(c) if c else np.zeros((0, 2, 2)))
                 for r, c in zip(res, covs, strict=True)]
