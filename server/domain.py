@@ -6,10 +6,10 @@ estimates) live in ``server.estimation.types``; these are the service's own reco
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from server.estimation.types import Estimate, Fix, ScanNote
 
@@ -105,20 +105,34 @@ class ApiKeyInfo:
 
 #: a wall segment (x1, y1, x2, y2), metres
 Wall = tuple[float, float, float, float]
+#: a walkable area: the exterior ring of a polygon, [(x, y), ...] in site metres
+Polygon = tuple[tuple[float, float], ...]
+#: a floor's identity on its site: (building, level)
+FloorId = tuple[int, int]
 
 
 @dataclass(frozen=True)
 class Floor:
+    """A floor: ``level`` of ``building`` (0 on a site of one building)."""
+
     level: int
     name: str | None = None
     width_m: float | None = None
     height_m: float | None = None
     walls: tuple[Wall, ...] = ()
+    building: int = 0
+    #: where one can walk, when a plan says so (None: unknown)
+    walkable: tuple[Polygon, ...] | None = None
+
+    @property
+    def id(self) -> FloorId:
+        return (self.building, self.level)
 
 
 @dataclass(frozen=True)
 class Transmitter:
-    """A WiFi AP or BLE beacon of a site; position and radio parameters are optional."""
+    """A WiFi AP or BLE beacon of a site; position and radio parameters are optional; ``building``
+    is set exactly when ``floor`` is (0 when a floor is given without one)."""
 
     id: str
     kind: str
@@ -127,6 +141,37 @@ class Transmitter:
     y: float | None = None
     tx_power_dbm: float | None = None
     path_loss_exponent: float | None = None
+    building: int | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "building", None if self.floor is None else (self.building or 0))
+
+
+class _OnFloor(Protocol):
+    @property
+    def id(self) -> str: ...
+    @property
+    def floor(self) -> int | None: ...
+    @property
+    def building(self) -> int | None: ...
+
+
+def floor_names(floors: Iterable[FloorId]) -> str:
+    """Floors as messages name them: levels alone on a site of one building, else building/level pairs."""
+    floors = sorted(floors)
+    if all(b == 0 for b, _ in floors):
+        return str([level for _, level in floors])
+    return "[" + ", ".join(f"building {b} level {level}" for b, level in floors) + "]"
+
+
+def undeclared_floors(declared: set[FloorId], transmitters: Iterable[_OnFloor]) -> str | None:
+    """A site that declares floors accepts transmitters on those (building, level) floors only; None when
+    all are fine."""
+    if not declared:
+        return None
+    bad = [t.id for t in transmitters if t.floor is not None and (t.building or 0, t.floor) not in declared]
+    return f"transmitter(s) {', '.join(bad[:10])} on a floor the site does not declare {floor_names(declared)}" \
+        if bad else None
 
 
 @dataclass(frozen=True)
@@ -169,7 +214,7 @@ class SiteContextRecord:
 
     revision: str
     settings: Mapping[str, Any]
-    walls: Mapping[int, tuple[Wall, ...]]
+    walls: Mapping[FloorId, tuple[Wall, ...]]
     #: the transmitters with a known position
     transmitters: tuple[Transmitter, ...]
 
@@ -189,6 +234,7 @@ class FingerprintRecord:
     t: float | None = None
     device: str | None = None
     label: str | None = None
+    building: int = 0
 
 
 @dataclass(frozen=True)
@@ -211,6 +257,7 @@ class ReferencePointSummary:
     x: float
     y: float
     fingerprints: int
+    building: int = 0
 
 
 @dataclass(frozen=True)
@@ -324,7 +371,22 @@ class Artifact:
 
 
 @dataclass(frozen=True)
+class Coverage:
+    """Whether a scan resembles what was surveyed (``WKNNModel.coverage``): ``ratio`` is its
+    distance to the nearest surveyed fingerprint over the model's threshold (the distance 99 %
+    of held-out scans at unsurveyed reference points stayed within); above 1 it is out of coverage."""
+
+    ratio: float
+
+    @property
+    def inside(self) -> bool:
+        return self.ratio <= 1.0
+
+
+@dataclass(frozen=True)
 class Located:
     fix: Fix
     model_id: int
     algorithm: str
+    #: None: the model cannot tell
+    coverage: Coverage | None = None

@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 from pydantic import (
     AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     StringConstraints,
@@ -15,7 +16,7 @@ from pydantic import (
     model_validator,
 )
 
-from server.domain import Activation
+from server.domain import Activation, undeclared_floors
 from server.estimation.fingerprint.registry import ALGORITHMS
 from server.estimation.tracking import tracker_names
 
@@ -45,6 +46,20 @@ Degrees = Annotated[float, Field(allow_inf_nan=False, ge=-360, le=360, descripti
     "Heading in degrees clockwise from the site's +y axis (0 = +y/north, 90 = +x/east): "
     "a step of length d moves by (d·sin h, d·cos h)."))]
 Level = Annotated[int, Field(ge=-20, le=200, description="Floor level, an integer (0 = ground).")]
+#: buildings are numbered 0, 1, ...; a site of one building has only building 0
+MAX_BUILDING = 999
+BUILDING_DOC = ("Extension: the building the floor belongs to, an integer in [0, 999] (default 0: a site of one "
+                "building). A floor is a (building, level) pair (docs/api-conventions.md).")
+
+
+def _not_bool(value: Any) -> Any:
+    if isinstance(value, bool):
+        raise ValueError("building must be an integer, not a boolean")
+    return value
+
+
+BuildingNumber = Annotated[int, BeforeValidator(_not_bool), Field(ge=0, le=MAX_BUILDING)]
+Building = Annotated[BuildingNumber, Field(description=BUILDING_DOC)]
 #: where a field is a position in the site frame
 X_DOC = "Metres east in the site frame (x axis; origin chosen by the site)."
 Y_DOC = "Metres north in the site frame (y axis)."
@@ -75,19 +90,39 @@ class Strict(BaseModel):
 # --- sites ---------------------------------------------------------------------------
 
 
+#: most points of all a floor's walkable polygons together
+MAX_WALKABLE_POINTS = 100_000
+Ring = Annotated[list[tuple[Metres, Metres]], Field(min_length=3, max_length=MAX_WALKABLE_POINTS)]
+
+
+def _walkable_size(polygons: list[list[tuple[float, float]]] | None) -> list[list[tuple[float, float]]] | None:
+    if polygons is not None and sum(len(p) for p in polygons) > MAX_WALKABLE_POINTS:
+        raise ValueError(f"walkable polygons hold more than {MAX_WALKABLE_POINTS} points together")
+    return polygons
+
+
+Walkable = Annotated[list[Ring], Field(max_length=10_000), AfterValidator(_walkable_size)]
+WALKABLE_DOC = ("Extension: where one can walk on the floor, as polygons in site metres, each the exterior ring "
+                "[[x, y], ...] of at least 3 points (at most 100,000 points in all); null or absent: unknown.")
+
+
 class FloorIn(Strict):
     level: Level
+    building: Building = 0
     name: Name | None = None
     width_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
     height_m: Annotated[float, Field(gt=0, le=1e5)] | None = None
     walls: Annotated[list[tuple[Metres, Metres, Metres, Metres]], Field(
         max_length=100_000, description="Wall segments [x1, y1, x2, y2] in site metres.")] = []
+    walkable: Walkable | None = Field(None, description=WALKABLE_DOC)
 
 
 class TransmitterIn(Strict):
     id: TxId
     kind: Literal["wifi", "ble"] = Field(description="`wifi` (access point) or `ble` (iBeacon); the id's prefix.")
     floor: Level | None = None
+    building: BuildingNumber | None = Field(
+        None, description="Extension: the building of `floor` (default 0 when a floor is given; only with a floor).")
     x: Metres | None = Field(None, description=X_DOC)
     y: Metres | None = Field(None, description=Y_DOC)
     tx_power_dbm: Annotated[float, Field(ge=-130, le=30)] | None = None
@@ -99,6 +134,8 @@ class TransmitterIn(Strict):
             raise ValueError(f"id {self.id!r} does not match kind {self.kind!r}")
         if (self.x is None) != (self.y is None):
             raise ValueError("give both x and y, or neither")
+        if self.building is not None and self.floor is None:
+            raise ValueError("a building is given only with a floor")
         return self
 
 
@@ -112,38 +149,33 @@ class SiteIn(Strict):
 
     @model_validator(mode="after")
     def _unique(self) -> SiteIn:
-        levels = [f.level for f in self.floors]
-        if len(levels) != len(set(levels)):
-            raise ValueError("floor levels must be unique")
+        floors = [(f.building, f.level) for f in self.floors]
+        if len(floors) != len(set(floors)):
+            raise ValueError("floor levels must be unique within a building")
         ids = [t.id for t in self.transmitters]
         if len(ids) != len(set(ids)):
             raise ValueError("transmitter ids must be unique")
-        undeclared = undeclared_floors(set(levels), self.transmitters)
+        undeclared = undeclared_floors(set(floors), self.transmitters)
         if undeclared:
             raise ValueError(undeclared)
         return self
 
 
-def undeclared_floors(declared: set[int], transmitters: list[TransmitterIn]) -> str | None:
-    """A site that declares floors accepts transmitters on those floors only; None when all are fine."""
-    if not declared:
-        return None
-    bad = [t.id for t in transmitters if t.floor is not None and t.floor not in declared]
-    return f"transmitter(s) {', '.join(bad[:10])} on a floor the site does not declare {sorted(declared)}" if bad else None
-
-
 class FloorOut(BaseModel):
     level: int
+    building: int = Field(0, description=BUILDING_DOC)
     name: str | None
     width_m: float | None
     height_m: float | None
     walls: list[list[float]]
+    walkable: list[list[list[float]]] | None = Field(None, description=WALKABLE_DOC)
 
 
 class TransmitterOut(BaseModel):
     id: str
     kind: str
     floor: int | None
+    building: int | None = Field(None, description="Extension: the building of `floor` (null when no floor).")
     x: float | None
     y: float | None
     tx_power_dbm: float | None
@@ -179,6 +211,7 @@ class SiteOut(BaseModel):
 class ReferencePointOut(BaseModel):
     label: str | None
     floor: int
+    building: int = Field(0, description=BUILDING_DOC)
     x: float
     y: float
     fingerprints: int
@@ -200,6 +233,7 @@ class CoveragePointOut(CoverageCount):
 class CoverageOut(BaseModel):
     transmitter: str
     floor: int
+    building: int = Field(0, description=BUILDING_DOC)
     reference_points: list[CoveragePointOut] = Field(
         description="Every reference point of the floor with its survey fingerprints."
     )
@@ -215,6 +249,7 @@ class FingerprintIn(Strict):
     x: Metres = Field(description=X_DOC)
     y: Metres = Field(description=Y_DOC)
     floor: Level
+    building: Building = 0
     rss: Rss = Field(description="Transmitter id → dBm; a transmitter not heard is absent (never a sentinel).")
     heading_deg: Degrees | None = None
     t: Seconds | None = None
@@ -255,6 +290,7 @@ class InitialIn(Strict):
     x: Metres = Field(description=X_DOC)
     y: Metres = Field(description=Y_DOC)
     floor: Level
+    building: Building = 0
     heading_deg: Degrees | None = None
     covariance: Annotated[Cov2, AfterValidator(_positive_definite)] | None = Field(
         None, description=COV_DOC + " Symmetric, positive definite; default: the tracker's own.")
@@ -306,6 +342,7 @@ class EstimateOut(BaseModel):
     x: float = Field(description=X_DOC)
     y: float = Field(description=Y_DOC)
     floor: int
+    building: int = Field(0, description=BUILDING_DOC)
     covariance: list[list[float]] = Field(description=COV_DOC)
     source: Literal["step", "scan", "init"] = Field(
         description="What made it: a PDR step, a scan's fix, or the session's initial position.")
@@ -451,6 +488,7 @@ class CandidateOut(BaseModel):
     x: float
     y: float
     floor: int
+    building: int = Field(0, description=BUILDING_DOC)
     probability: float
 
 
@@ -458,8 +496,19 @@ class LocateOut(BaseModel):
     x: float = Field(description=X_DOC)
     y: float = Field(description=Y_DOC)
     floor: int
+    building: int = Field(0, description="Extension: the building of `floor`, chosen first (building → floor → "
+                          "position: the floor and the position always belong to it).")
     covariance: list[list[float]] = Field(description=COV_DOC)
     model_id: int
     algorithm: str
     reference_point: str | None = None
     candidates: list[CandidateOut] = []
+    in_coverage: bool | None = Field(
+        None, description="Extension: false when the scan resembles nothing surveyed (the answer is then only the "
+        "nearest surveyed place): `coverage_ratio` > 1. Null when the model cannot tell (every algorithm but "
+        "`wknn`, or a model trained on too little to measure).")
+    coverage_ratio: float | None = Field(
+        None, description="Extension: the scan's RSS distance to the nearest surveyed fingerprint divided by the "
+        "model's coverage threshold, the distance that 99 % of scans held out at unsurveyed reference points stayed "
+        "within when the model was trained: 0 = a surveyed scan exactly, ≤ 1 in coverage. Null when "
+        "`in_coverage` is.")

@@ -2,7 +2,8 @@
 
 Every format ends in the same pydantic validation (`FingerprintIn`), so the edge rules
 (RSS range, NaN, transmitter id format, empty scans) are written once; the valid rows
-become domain ``FingerprintRecord``s. Errors name the
+become domain ``FingerprintRecord``s. ``building`` (an optional CSV column; UJIIndoorLoc's
+``BUILDINGID``) defaults to 0. Errors name the
 field and the row: the 0-based index in ``fingerprints`` for JSON; for CSV the 0-based
 data row under the header (blank and skipped rows count) plus the 1-based file ``line``.
 """
@@ -23,7 +24,7 @@ from server.errors import Invalid, TooLarge, UnsupportedMedia
 from server.estimation.fingerprint.ujiindoorloc import UjiFormatError, UjiRecord, parse_ujiindoorloc
 from server.schemas import TX_ID_PATTERN, FingerprintIn
 
-CSV_FIELDS = ("x", "y", "floor", "heading_deg", "label", "device", "t")
+CSV_FIELDS = ("x", "y", "floor", "building", "heading_deg", "label", "device", "t")
 MAX_REPORTED_ERRORS = 100
 TX_ID_HELP = "wifi:<bssid>, wifi:<name>, ble:<uuid>:<major>:<minor> or ble:<name>, lower case"
 
@@ -167,6 +168,8 @@ def _uji_rows(text: str) -> tuple[list[dict[str, Any]], list[tuple[int, int]], i
 
 def _uji_row(record: UjiRecord) -> dict[str, Any]:
     row: dict[str, Any] = {"x": record.x, "y": record.y, "floor": record.floor, "rss": record.rss}
+    if record.building is not None:  # BUILDINGID: a campus keeps its buildings apart
+        row["building"] = record.building
     if record.device is not None:
         row["device"] = record.device
     if record.timestamp is not None:
@@ -195,7 +198,8 @@ def _validate(rows: list[Any], positions: list[tuple[int, int]] | None) -> list[
             errors.append(_error(row, ".".join(map(str, field)), msg, line=line))
         raise invalid_rows(errors, exc.error_count()) from None
     return [
-        FingerprintRecord(f.x, f.y, f.floor, f.rss, heading_deg=f.heading_deg, t=f.t, device=f.device, label=f.label)
+        FingerprintRecord(f.x, f.y, f.floor, f.rss, heading_deg=f.heading_deg, t=f.t, device=f.device, label=f.label,
+                          building=f.building)
         for f in valid
     ]
 

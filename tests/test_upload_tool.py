@@ -16,7 +16,9 @@ FIXTURES = Path(__file__).parent / "fixtures"
 
 @pytest.fixture
 def site_id(admin) -> int:
-    return admin.post("/api/v1/sites", json={"name": "Upload", "floors": [{"level": 0}, {"level": 1}]}).json()["id"]
+    """Floors 0 and 1 of buildings 0 (the CSV and JSON surveys) and 1 (uji_tiny.csv's BUILDINGID)."""
+    floors = [{"level": level, "building": b} for b in (0, 1) for level in (0, 1)]
+    return admin.post("/api/v1/sites", json={"name": "Upload", "floors": floors}).json()["id"]
 
 
 def run(path: Path, live_server, site_id: int, fmt: str, **options) -> tuple[int, str]:

@@ -21,11 +21,14 @@ router = APIRouter(prefix="/api/v1/sites", tags=["locate"])
 )
 async def locate(site_id: PathId, request: Request, positioning: Positioning, _: Device) -> Response:
     body = await read_json(request, LocateIn)
-    located = await run_blocking(request, positioning.locate, site_id, body.rss, body.heading_deg, body.model_id)
-    fix = located.fix
+    located = await run_blocking(request, positioning.locate_answer, site_id, body.rss, body.heading_deg, body.model_id)
+    fix, coverage = located.fix, located.coverage
     return JSONResponse(LocateOut(
-        x=fix.x, y=fix.y, floor=fix.floor, covariance=fix.covariance.tolist(),
+        x=fix.x, y=fix.y, floor=fix.floor, building=fix.building, covariance=fix.covariance.tolist(),
         model_id=located.model_id, algorithm=located.algorithm, reference_point=fix.reference_point,
-        candidates=[CandidateOut(label=c.label, x=c.x, y=c.y, floor=c.floor, probability=c.probability)
+        candidates=[CandidateOut(label=c.label, x=c.x, y=c.y, floor=c.floor, building=c.building,
+                                 probability=c.probability)
                     for c in fix.candidates],
+        in_coverage=None if coverage is None else coverage.inside,
+        coverage_ratio=None if coverage is None else coverage.ratio,
     ).model_dump(mode="json"))

@@ -32,7 +32,7 @@ _NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such ses
              responses={404: {"description": "Unknown site."}, 422: {"description": "Bad filter, model or initial."}})
 def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> SessionOut:
     init = body.initial
-    initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance)
+    initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance, init.building)
     return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial))
 
 
@@ -123,14 +123,14 @@ def close_session(session_id: str, sessions: Sessions, principal: Device) -> Res
 
 
 def estimate_out(e: Estimate) -> EstimateOut:
-    return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
-                       source=e.source)
+    return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, building=e.building,
+                       covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source)
 
 
 def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:
     """Every field set but ``fix_refused``, which is set only when true (the route leaves out unset fields)."""
-    out = TrackEstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, covariance=[list(e.covariance[0]), list(e.covariance[1])],
-                           source=e.source)
+    out = TrackEstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, building=e.building,
+                           covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source)
     if refused:
         out.fix_refused = True
     return out

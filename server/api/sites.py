@@ -9,11 +9,13 @@ from fastapi import APIRouter, Query, Response, status
 from server.api.deps import Admin, PathId, Sites
 from server.domain import Floor, NewSite, SiteSummary, Transmitter
 from server.schemas import (
+    MAX_BUILDING,
     TX_ID_PATTERN,
     CoverageCount,
     CoverageOut,
     CoveragePointOut,
     FingerprintCounts,
+    FloorIn,
     FloorOut,
     ReferencePointOut,
     SiteIn,
@@ -30,6 +32,22 @@ router = APIRouter(prefix="/api/v1/sites", tags=["sites"])
 def _transmitter(t: TransmitterIn) -> Transmitter:
     return Transmitter(
         id=t.id, kind=t.kind, floor=t.floor, x=t.x, y=t.y, tx_power_dbm=t.tx_power_dbm, path_loss_exponent=t.path_loss_exponent,
+        building=t.building,
+    )
+
+
+def _floor_out(f: Floor) -> FloorOut:
+    return FloorOut(
+        level=f.level, building=f.building, name=f.name, width_m=f.width_m, height_m=f.height_m,
+        walls=[list(w) for w in f.walls],
+        walkable=None if f.walkable is None else [[list(p) for p in ring] for ring in f.walkable],
+    )
+
+
+def _floor(f: FloorIn) -> Floor:
+    return Floor(
+        level=f.level, building=f.building, name=f.name, width_m=f.width_m, height_m=f.height_m, walls=tuple(f.walls),
+        walkable=None if f.walkable is None else tuple(tuple(ring) for ring in f.walkable),
     )
 
 
@@ -39,10 +57,7 @@ def _site_out(summary: SiteSummary) -> SiteOut:
         id=site.id,
         name=site.name,
         settings=dict(site.settings),
-        floors=[
-            FloorOut(level=f.level, name=f.name, width_m=f.width_m, height_m=f.height_m, walls=[list(w) for w in f.walls])
-            for f in site.floors
-        ],
+        floors=[_floor_out(f) for f in site.floors],
         transmitters=counts.transmitters,
         reference_points=counts.reference_points,
         fingerprints=FingerprintCounts(survey=counts.survey_fingerprints, crowd=counts.crowd_fingerprints),
@@ -52,7 +67,8 @@ def _site_out(summary: SiteSummary) -> SiteOut:
 
 def _transmitter_out(t: Transmitter) -> TransmitterOut:
     return TransmitterOut(
-        id=t.id, kind=t.kind, floor=t.floor, x=t.x, y=t.y, tx_power_dbm=t.tx_power_dbm, path_loss_exponent=t.path_loss_exponent,
+        id=t.id, kind=t.kind, floor=t.floor, building=t.building, x=t.x, y=t.y, tx_power_dbm=t.tx_power_dbm,
+        path_loss_exponent=t.path_loss_exponent,
     )
 
 
@@ -60,10 +76,7 @@ def _transmitter_out(t: Transmitter) -> TransmitterOut:
 def create_site(body: SiteIn, sites: Sites, _: Admin) -> SiteOut:
     new = NewSite(
         name=body.name,
-        floors=tuple(
-            Floor(level=f.level, name=f.name, width_m=f.width_m, height_m=f.height_m, walls=tuple(f.walls))
-            for f in body.floors
-        ),
+        floors=tuple(_floor(f) for f in body.floors),
         transmitters=tuple(_transmitter(t) for t in body.transmitters),
     )
     return _site_out(sites.create(new))
@@ -105,7 +118,8 @@ def get_transmitters(site_id: PathId, sites: Sites, _: Admin) -> list[Transmitte
 @router.get("/{site_id}/reference-points", response_model=list[ReferencePointOut])
 def get_reference_points(site_id: PathId, sites: Sites, _: Admin) -> list[ReferencePointOut]:
     return [
-        ReferencePointOut(label=rp.label, floor=rp.floor, x=rp.x, y=rp.y, fingerprints=rp.fingerprints)
+        ReferencePointOut(label=rp.label, floor=rp.floor, building=rp.building, x=rp.x, y=rp.y,
+                          fingerprints=rp.fingerprints)
         for rp in sites.reference_points(site_id)
     ]
 
@@ -117,10 +131,11 @@ def get_coverage(
     _: Admin,
     transmitter: Annotated[str, Query(pattern=TX_ID_PATTERN, description="The transmitter's id.")],
     floor: Annotated[int, Query(ge=-20, le=200, description="Floor level.")],
+    building: Annotated[int, Query(ge=0, le=MAX_BUILDING, description="The floor's building (default 0).")] = 0,
 ) -> CoverageOut:
     """Measured coverage (extension): per reference point of the floor, how many survey fingerprints it
     holds, how many heard the transmitter and their mean RSS; the floor's crowd fingerprints together."""
-    cells = sites.coverage(site_id, transmitter, floor)
+    cells = sites.coverage(site_id, transmitter, floor, building)
     crowd = [c for c in cells if c.reference_point_id is None]
     crowd_n = sum(c.fingerprints for c in crowd)
     crowd_heard = sum(c.heard for c in crowd)
@@ -130,6 +145,7 @@ def get_coverage(
     return CoverageOut(
         transmitter=transmitter,
         floor=floor,
+        building=building,
         reference_points=[
             CoveragePointOut(label=c.label, x=c.x, y=c.y, fingerprints=c.fingerprints, heard=c.heard,
                              mean_rss_dbm=c.mean_rss_dbm)

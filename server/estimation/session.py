@@ -8,6 +8,10 @@ session without a given position on its first fix (the cold-start fusion of DESI
 predicts with steps, updates with fixes through an innovation gate, follows floors with
 hysteresis, ranges to beacons, snaps to landmarks and proposes crowd fingerprints.
 
+A floor is a (building, level) pair: the floor hysteresis follows the pair, so a fix in
+another building is a floor change like any other, and every estimate's level belongs to
+its building.
+
 The state is plain data (``to_dict``/``from_dict``), so the server stores it after every
 batch and any process resumes it.
 """
@@ -55,6 +59,20 @@ GATE_D2 = 13.82
 #: (weighted by the widened covariance) instead of one fix being taken blindly
 MAX_GATED_IN_A_ROW = 3
 INFLATE_FACTOR = 2.0
+#: ``FloorTracker`` follows one integer per floor: (building, level) packed as
+#: building · FLOOR_KEY + level (levels lie within ±FLOOR_KEY/2), so a state stored before
+#: buildings (building 0: the level itself) reads unchanged
+FLOOR_KEY = 1000
+
+
+def floor_key(building: int, level: int) -> int:
+    return int(building) * FLOOR_KEY + int(level)
+
+
+def building_level(key: int) -> tuple[int, int]:
+    """The (building, level) of a ``floor_key``."""
+    building = (int(key) + FLOOR_KEY // 2) // FLOOR_KEY
+    return building, int(key) - building * FLOOR_KEY
 
 
 class FixSource(Protocol):
@@ -91,15 +109,16 @@ class SessionEstimator:
     def started(self) -> bool:
         return self.tracker is not None
 
-    def start(self, mean, cov, floor: int, walls, t: float | None, source: str) -> Estimate:
+    def start(self, mean, cov, floor: int, walls, t: float | None, source: str, building: int = 0) -> Estimate:
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
         self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed, **self.tracker_params)
-        self.floors = FloorTracker(floor)
+        self.floors = FloorTracker(floor_key(building, floor))
         return self._record(t, source)
 
     def _record(self, t: float | None, source: str) -> Estimate:
         assert self.tracker is not None and self.floors is not None
-        self.estimate = Estimate.of(t, self.tracker.mean, self.tracker.covariance, self.floors.floor, source)
+        building, level = building_level(self.floors.floor)
+        self.estimate = Estimate.of(t, self.tracker.mean, self.tracker.covariance, level, source, building)
         return self.estimate
 
     def search_area(self) -> Area | None:
@@ -150,8 +169,10 @@ class SessionEstimator:
             estimates.append(e)
             if refused is not None:
                 rejected.append(ScanNote(i, refused))
-            elif crowdsourcing and not cold and e.floor == fix.floor and gate([e.x, e.y], e.covariance, fix.mean, item.rss):
-                crowd.append(CrowdCandidate(make_crowd_point(e.x, e.y, e.floor, item.rss), item))
+            elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
+                  and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
+                point = replace(make_crowd_point(e.x, e.y, e.floor, item.rss), building=e.building)
+                crowd.append(CrowdCandidate(point, item))
         return BatchOutcome(
             estimates=tuple(estimates), estimate=self.estimate, applied_steps=applied_steps,
             applied_scans=applied_scans, skipped_scans=tuple(skipped), rejected_fixes=tuple(rejected),
@@ -169,10 +190,12 @@ class SessionEstimator:
             fingerprint = fixes.fix(scan, None)
         except NoFix as exc:
             why = exc
-        ml = multilateration_fix(scan.rss, site.beacons, None if fingerprint is None else fingerprint.floor)
+        ml = multilateration_fix(scan.rss, site.beacons, None if fingerprint is None else fingerprint.floor,
+                                 building_hint=None if fingerprint is None else fingerprint.building)
         if fingerprint is None and ml is None:
             raise why if why is not None else NoFix("no fix")
-        return cold_start_fix(fingerprint, ml)
+        fused = cold_start_fix(fingerprint, ml)
+        return replace(fused, building=(fingerprint or fused).building)
 
     # -- single inputs --------------------------------------------------------------
     def advance(self, t: float) -> None:
@@ -196,26 +219,27 @@ class SessionEstimator:
         (it then moves nothing), why."""
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
-            return self.start(fix.mean, fix.covariance, fix.floor, site.walls_of(fix.floor), scan.t, "scan"), None
+            walls = site.walls_of(fix.floor, fix.building)
+            return self.start(fix.mean, fix.covariance, fix.floor, walls, scan.t, "scan", fix.building), None
         refused = None
         floor_before = self.floors.floor
-        if self.floors.observe(fix.floor):
-            # A confirmed floor change: walls of the new floor, restart from the fix there.
-            self.tracker.set_walls(site.walls_of(self.floors.floor))
+        if self.floors.observe(floor_key(fix.building, fix.floor)):
+            # A confirmed floor change (maybe into another building): its walls, restart from the fix there.
+            self.tracker.set_walls(site.walls_of(fix.floor, fix.building))
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
-        elif fix.floor == floor_before:
+        elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)
-        floor = self.floors.floor
+        building, floor = building_level(self.floors.floor)
         if self.tracker.supports_range:
             for tx_id, rss in scan.rss.items():
                 b = site.beacons.get(tx_id)
                 if b is not None and b.tx_power_dbm is not None and b.path_loss_exponent is not None \
-                        and b.floor in (None, floor):
+                        and b.on(building, floor):
                     r, std = range_and_std(rss, b.tx_power_dbm, b.path_loss_exponent)
                     self.tracker.update_range((b.x, b.y), r, std)
         self.landmarks.beacons = {
-            k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.floor in (None, floor)
+            k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.on(building, floor)
         }
         for snap in self.landmarks.observe(scan.rss)[:1]:
             apply_snap(self.tracker, snap)
@@ -306,16 +330,20 @@ def multilateration_fix(
     default_r0_dbm: float = -45.0,
     default_gamma: float = 2.5,
     max_anchors: int = 8,
+    building_hint: int | None = None,
 ) -> Fix | None:
     """Least-squares multilateration from the heard transmitters with known positions
     (ranges by the path-loss model, each transmitter's own R0/γ where stored), on
-    ``floor_hint`` or else the floor of the strongest heard transmitter that has one.
-    None when no positioned transmitter is heard or the floor cannot be told."""
+    ``floor_hint`` (of ``building_hint``) or else the floor of the strongest heard
+    transmitter that has one. None when no positioned transmitter is heard or the floor
+    cannot be told."""
     heard = sorted(((v, beacons[k]) for k, v in rss.items() if k in beacons), key=lambda vb: -vb[0])
-    floor = floor_hint
+    floor, building = floor_hint, building_hint or 0
     if floor is None:
-        floor = next((b.floor for _, b in heard if b.floor is not None), None)
-    anchors = [(v, b) for v, b in heard if b.floor in (None, floor)][:max_anchors]
+        strongest = next((b for _, b in heard if b.floor is not None), None)
+        if strongest is not None:
+            floor, building = strongest.floor, strongest.building or 0
+    anchors = [(v, b) for v, b in heard if floor is not None and b.on(building, floor)][:max_anchors]
     if floor is None or not anchors:
         return None
     xy = np.array([[b.x, b.y] for _, b in anchors])
@@ -327,4 +355,4 @@ def multilateration_fix(
     mean, cov = multilaterate(xy, ranges)
     if not np.all(np.isfinite(mean)):
         return None
-    return Fix(float(mean[0]), float(mean[1]), int(floor), fix_cov(cov))
+    return Fix(float(mean[0]), float(mean[1]), int(floor), fix_cov(cov), building=building)

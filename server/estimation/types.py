@@ -2,7 +2,8 @@
 
 Site frame: metres, x east, y north. ``heading_deg`` is clockwise from +y, so a step
 of length d along heading h moves by (d·sin h, d·cos h). RSS is dBm in [-130, 0];
-a transmitter not heard is absent from a scan (in arrays: NaN).
+a transmitter not heard is absent from a scan (in arrays: NaN). A floor is a (building,
+level) pair: ``building`` is 0 on a site of one building.
 """
 
 from __future__ import annotations
@@ -53,11 +54,12 @@ class Candidate:
     y: float
     floor: int
     probability: float
+    building: int = 0
 
 
 @dataclass(frozen=True)
 class Fix:
-    """A position estimate from one scan: mean, 2×2 covariance (m²) and floor."""
+    """A position estimate from one scan: mean, 2×2 covariance (m²), floor and its building."""
 
     x: float
     y: float
@@ -65,6 +67,7 @@ class Fix:
     covariance: np.ndarray
     reference_point: str | None = None
     candidates: list[Candidate] = field(default_factory=list)
+    building: int = 0
 
     @property
     def mean(self) -> np.ndarray:
@@ -87,29 +90,33 @@ class Estimate:
     floor: int
     covariance: Covariance2
     source: str
+    building: int = 0
 
     @classmethod
-    def of(cls, t: float | None, mean, cov, floor: int, source: str) -> Estimate:
+    def of(cls, t: float | None, mean, cov, floor: int, source: str, building: int = 0) -> Estimate:
         c = np.asarray(cov, float)
         return cls(
             t=None if t is None else float(t), x=float(mean[0]), y=float(mean[1]), floor=int(floor),
             covariance=((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1]))), source=source,
+            building=int(building),
         )
 
     def to_dict(self) -> dict:
         """The JSON form (also the API's ``Estimate``)."""
-        return {"t": self.t, "x": self.x, "y": self.y, "floor": self.floor,
+        return {"t": self.t, "x": self.x, "y": self.y, "floor": self.floor, "building": self.building,
                 "covariance": [list(self.covariance[0]), list(self.covariance[1])], "source": self.source}
 
     @classmethod
     def from_dict(cls, d: dict) -> Estimate:
+        """Estimates stored before buildings have none: building 0."""
         (a, b), (c, e) = d["covariance"]
-        return cls(d["t"], d["x"], d["y"], d["floor"], ((a, b), (c, e)), d["source"])
+        return cls(d["t"], d["x"], d["y"], d["floor"], ((a, b), (c, e)), d["source"], d.get("building", 0))
 
 
 @dataclass(frozen=True)
 class Beacon:
-    """A transmitter with a known position; radio parameters make ranges possible."""
+    """A transmitter with a known position; radio parameters make ranges possible. A beacon
+    without a floor is heard on every floor of every building."""
 
     id: str
     x: float
@@ -117,17 +124,22 @@ class Beacon:
     floor: int | None
     tx_power_dbm: float | None = None
     path_loss_exponent: float | None = None
+    building: int | None = None
+
+    def on(self, building: int, floor: int) -> bool:
+        """Whether the beacon serves that floor of that building."""
+        return self.floor is None or (self.floor == floor and (self.building or 0) == building)
 
 
 @dataclass(frozen=True)
 class SiteMap:
-    """What a tracker knows of a site: positioned transmitters by id and walls by floor level."""
+    """What a tracker knows of a site: positioned transmitters by id and walls by (building, level)."""
 
     beacons: dict[str, Beacon] = field(default_factory=dict)
-    walls: dict[int, list] = field(default_factory=dict)
+    walls: dict[tuple[int, int], list] = field(default_factory=dict)
 
-    def walls_of(self, level: int) -> list:
-        return self.walls.get(level, [])
+    def walls_of(self, level: int, building: int = 0) -> list:
+        return self.walls.get((building, level), [])
 
 
 @dataclass(frozen=True)
@@ -152,6 +164,7 @@ class CrowdPoint:
     rss: dict[str, float]
     count: int = 1
     counts: dict[str, int] | None = None
+    building: int = 0
 
     def tx_counts(self) -> dict[str, int]:
         return self.counts if self.counts is not None else dict.fromkeys(self.rss, self.count)

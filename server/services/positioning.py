@@ -8,11 +8,13 @@ database which model serves the site, never re-reads an artifact.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Mapping
+from dataclasses import replace
 
 from server.db import Database
-from server.domain import Located, ServingModel
+from server.domain import Coverage, Located, ServingModel
 from server.errors import Conflict, InvalidField, NoReadyModel, NotFound
 from server.estimation.fingerprint import (
     ArtifactError,
@@ -104,3 +106,21 @@ class Positioning:
         except UnknownTransmittersError:
             raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
         return Located(fix, serving.model_id, serving.algorithm)
+
+    def locate_answer(
+        self, site_id: int, rss: Mapping[str, float], heading_deg: float | None = None, model_id: int | None = None,
+    ) -> Located:
+        """``locate`` for a phone asking where it is: the fix and whether the scan resembles anything surveyed."""
+        serving = self.serving_model(site_id, model_id)
+        located = self.locate(site_id, rss, heading_deg, serving=serving)
+        return replace(located, coverage=scan_coverage(self.cache.get(serving.model_id, serving.sha256), rss))
+
+
+def scan_coverage(model: FingerprintModel, rss: Mapping[str, float]) -> Coverage | None:
+    """The scan's ``Coverage`` under a model that measures it (``coverage()`` and a finite threshold from its
+    internal cross-validation: ``wknn``); None for the others."""
+    threshold = float(getattr(model, "coverage_threshold_", math.inf))
+    if not hasattr(model, "coverage") or not math.isfinite(threshold) or threshold <= 0:
+        return None
+    nearest, _ = model.coverage(model.scan_matrix([rss]))
+    return Coverage(ratio=float(nearest[0]) / threshold)

@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 from sqlalchemy import Connection
 
 from server.auth import Principal
 from server.db import Database
-from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, SessionInfo
+from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, SessionInfo, floor_names
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
@@ -52,6 +52,7 @@ class InitialPosition:
     y: float
     floor: int
     covariance: tuple[tuple[float, float], tuple[float, float]] | None = None
+    building: int = 0
 
 
 @dataclass(frozen=True)
@@ -99,12 +100,15 @@ class SessionService:
                 raise Invalid([{"field": "model_id", "msg": f"model {model_id} is not a model of site {site_id}"}])
             estimates: list[Estimate] = []
             if initial is not None:
-                levels = site_store.floor_levels(s, site_id)
-                if levels and initial.floor not in levels:
+                floors = site_store.floor_ids(s, site_id)
+                if floors and (initial.building, initial.floor) not in floors:
+                    where = "" if initial.building == 0 else f" of building {initial.building}"
                     raise Invalid([{"field": "initial.floor",
-                                    "msg": f"floor {initial.floor} is not a floor of this site {sorted(levels)}"}])
-                walls = site_store.floor_walls(s, site_id, initial.floor)
-                estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init"))
+                                    "msg": f"floor {initial.floor}{where} is not a floor of this site "
+                                           f"{floor_names(floors)}"}])
+                walls = site_store.floor_walls(s, site_id, initial.floor, initial.building)
+                estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init",
+                                           initial.building))
             return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates)
 
     def list_sessions(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionInfo]:
@@ -119,7 +123,7 @@ class SessionService:
 
     def track(self, principal: Principal, session_id: str, smoothed: bool = False) -> list[Estimate]:
         """The stored track, oldest first; ``smoothed``: its fixed-interval (RTS) smoothing
-        (``server.estimation.tracking.smoother``: same length, times, floors and sources)."""
+        (``server.estimation.tracking.smoother``: same length, times, floors, buildings and sources)."""
         return self.track_marked(principal, session_id, smoothed)[0]
 
     def track_marked(self, principal: Principal, session_id: str, smoothed: bool = False) -> tuple[list[Estimate], set[int]]:
@@ -129,7 +133,7 @@ class SessionService:
             _visible(store.get_session(s, session_id), principal, session_id)
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
-        return (smooth_track(track) if smoothed else track), refused
+        return (_smoothed(track) if smoothed else track), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
@@ -232,17 +236,23 @@ class SessionService:
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
 
+def _smoothed(track: list[Estimate]) -> list[Estimate]:
+    """The RTS-smoothed track, each estimate in its own building (the smoother keeps every estimate's
+    place in the list, and its floor, but not its building)."""
+    return [replace(smooth, building=e.building) for smooth, e in zip(smooth_track(track), track, strict=True)]
+
+
 def _crowdsource(conn: Connection, site_id: int, candidates: Sequence[CrowdCandidate]) -> None:
-    """Merge each confident (estimate, scan) into the nearest crowd point within 1 m, or insert it."""
+    """Merge each confident (estimate, scan) into the nearest crowd point within 1 m of its floor, or insert it."""
     for c in candidates:
         p = c.point
-        stored = store.nearby_crowd_points(conn, site_id, p.floor, p.x, p.y, CROWD_MERGE_RADIUS_M)
+        stored = store.nearby_crowd_points(conn, site_id, p.floor, p.x, p.y, CROWD_MERGE_RADIUS_M, p.building)
         target = find_merge_target([q for _, q in stored], p, CROWD_MERGE_RADIUS_M)
         if target is None:
             store.add_crowd_fingerprint(conn, site_id, p, c.scan.heading_deg, c.scan.t)
         else:
             fid, q = stored[target]
-            store.update_crowd_fingerprint(conn, fid, merge_points(q, p))
+            store.update_crowd_fingerprint(conn, fid, replace(merge_points(q, p), building=p.building))
 
 
 def _reason(exc: ServiceError) -> str:

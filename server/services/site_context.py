@@ -57,11 +57,11 @@ class SiteContexts:
             settings=dict(found.settings),
             map=SiteMap(
                 beacons={
-                    t.id: Beacon(t.id, t.x, t.y, t.floor, t.tx_power_dbm, t.path_loss_exponent)
+                    t.id: Beacon(t.id, t.x, t.y, t.floor, t.tx_power_dbm, t.path_loss_exponent, t.building)
                     for t in found.transmitters
                     if t.x is not None and t.y is not None
                 },
-                walls={level: list(walls) for level, walls in found.walls.items()},
+                walls={floor: list(walls) for floor, walls in found.walls.items()},
             ),
             active_model=None if active is None else active.ready(),
         )

@@ -8,18 +8,18 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.db import Database
-from server.domain import CoverageCell, NewSite, ReferencePointSummary, Site, SiteSummary, Transmitter
+from server.domain import (
+    CoverageCell,
+    NewSite,
+    ReferencePointSummary,
+    Site,
+    SiteSummary,
+    Transmitter,
+    undeclared_floors,
+)
 from server.errors import Conflict, Invalid, NotFound
 from server.store import sites as store
 from server.store import surveys as survey_store
-
-
-def undeclared_floors(declared: set[int], transmitters: Sequence[Transmitter]) -> str | None:
-    """A site that declares floors accepts transmitters on those floors only; None when all are fine."""
-    if not declared:
-        return None
-    bad = [t.id for t in transmitters if t.floor is not None and t.floor not in declared]
-    return f"transmitter(s) {', '.join(bad[:10])} on a floor the site does not declare {sorted(declared)}" if bad else None
 
 
 class SiteService:
@@ -63,7 +63,7 @@ class SiteService:
             raise Invalid("transmitter ids must be unique in one request")
         with self._db.transaction() as s:
             _existing(s, site_id)
-            if problem := undeclared_floors(store.floor_levels(s, site_id), items):
+            if problem := undeclared_floors(store.floor_ids(s, site_id), items):
                 raise Invalid(problem)
             store.upsert_transmitters(s, site_id, items)
             return store.list_transmitters(s, site_id)
@@ -78,12 +78,12 @@ class SiteService:
             _existing(s, site_id)
             return survey_store.reference_points(s, site_id)
 
-    def coverage(self, site_id: int, transmitter_id: str, floor: int) -> list[CoverageCell]:
-        """Measured RSS of one transmitter per reference point of a floor (and over the floor's crowd
-        fingerprints); a transmitter no fingerprint heard gives ``heard`` 0 everywhere."""
+    def coverage(self, site_id: int, transmitter_id: str, floor: int, building: int = 0) -> list[CoverageCell]:
+        """Measured RSS of one transmitter per reference point of a floor of a building (and over the floor's
+        crowd fingerprints); a transmitter no fingerprint heard gives ``heard`` 0 everywhere."""
         with self._db.transaction() as s:
             _existing(s, site_id)
-            return survey_store.coverage(s, site_id, transmitter_id, floor)
+            return survey_store.coverage(s, site_id, transmitter_id, floor, building)
 
 
 def _no_site(site_id: int) -> NotFound:

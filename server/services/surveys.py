@@ -11,7 +11,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from server.db import Database
-from server.domain import FingerprintRecord, SurveyOutcome
+from server.domain import FingerprintRecord, FloorId, SurveyOutcome, floor_names
 from server.errors import Conflict, Invalid, NotFound
 from server.store import sites as site_store
 from server.store import surveys as store
@@ -73,7 +73,7 @@ class SurveyService:
                     "source): a key may only repeat the same request; use a new key for a new request"
                 )
             return outcome
-        check_floors(site_store.floor_levels(s, site_id), parsed.fingerprints)
+        check_floors(site_store.floor_ids(s, site_id), parsed.fingerprints)
         fingerprints, rows, already = parsed.fingerprints, [first_row + parsed.row_of(i) for i in
                                                              range(len(parsed.fingerprints))], 0
         if source is not None:
@@ -92,14 +92,19 @@ class SurveyService:
         )
 
 
-def check_floors(declared: set[int], fingerprints: Sequence[FingerprintRecord]) -> None:
-    """A site that declares its floors accepts fingerprints on those floors only."""
+def check_floors(declared: set[FloorId], fingerprints: Sequence[FingerprintRecord]) -> None:
+    """A site that declares its floors accepts fingerprints on those (building, level) floors only."""
     if not declared:
         return
     bad = [
-        {"row": i, "field": "floor", "msg": f"floor {fp.floor} is not a floor of this site {sorted(declared)}"}
+        {"row": i, "field": "floor",
+         "msg": f"{_floor_name(fp.building, fp.floor)} is not a floor of this site {floor_names(declared)}"}
         for i, fp in enumerate(fingerprints)
-        if fp.floor not in declared
+        if (fp.building, fp.floor) not in declared
     ]
     if bad:
         raise Invalid(bad[:100])
+
+
+def _floor_name(building: int, level: int) -> str:
+    return f"floor {level}" if building == 0 else f"building {building} floor {level}"

@@ -148,7 +148,7 @@ def _finite(o: Any) -> Any:
 def _row(fp: FingerprintRecord) -> dict[str, Any]:
     """A fingerprint as ``FingerprintSet.from_rows`` reads it."""
     return {"x": fp.x, "y": fp.y, "floor": fp.floor, "rss": fp.rss, "heading_deg": fp.heading_deg,
-            "device": fp.device, "t": fp.t, "label": fp.label}
+            "device": fp.device, "t": fp.t, "label": fp.label, "building": fp.building}
 
 
 @dataclass(frozen=True)

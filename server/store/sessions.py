@@ -56,6 +56,7 @@ _NEARBY_CROWD = (
     .where(
         _FINGERPRINTS.c.site_id == bindparam("site_id"),
         _FINGERPRINTS.c.source == "crowd",
+        _FINGERPRINTS.c.building == bindparam("building"),
         _FINGERPRINTS.c.floor == bindparam("floor"),
         _FINGERPRINTS.c.x.between(bindparam("x0"), bindparam("x1")),
         _FINGERPRINTS.c.y.between(bindparam("y0"), bindparam("y1")),
@@ -83,19 +84,20 @@ def _info(row: TrackingSession) -> SessionInfo:
 def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: Sequence[Estimate]) -> list[dict]:
     return [
         {"session_id": session_id, "idx": first_idx + i, "seq": seq, "t": e.t, "x": e.x, "y": e.y, "floor": e.floor,
-         "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
+         "building": e.building, "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
         for i, e in enumerate(estimates)
     ]
 
 
 #: a stored estimate's columns, in the order ``_estimate`` takes them
 _ESTIMATE_COLUMNS = (_ESTIMATES.c.t, _ESTIMATES.c.x, _ESTIMATES.c.y, _ESTIMATES.c.floor, _ESTIMATES.c.covariance,
-                     _ESTIMATES.c.source)
+                     _ESTIMATES.c.source, _ESTIMATES.c.building)
 
 
-def _estimate(t: float | None, x: float, y: float, floor: int, c: list[list[float]], source: str) -> Estimate:
+def _estimate(t: float | None, x: float, y: float, floor: int, c: list[list[float]], source: str,
+              building: int) -> Estimate:
     """A stored estimate (``_ESTIMATE_COLUMNS``) as the domain type: the inverse of ``_estimate_rows``."""
-    return Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source)
+    return Estimate(t, x, y, floor, ((c[0][0], c[0][1]), (c[1][0], c[1][1])), source, building)
 
 
 # --- open, read, close ------------------------------------------------------------------------
@@ -147,10 +149,10 @@ def list_sessions(
     return [
         SessionInfo(
             id=sid, site_id=site, owner_key=owner, filter=filter, model_id=model_id, status=st,
-            estimate=None if x is None else _estimate(t, x, y, floor, c, source),
+            estimate=None if x is None else _estimate(t, x, y, floor, c, source, building),
             created_at=created_at, last_seq=last_seq, track_length=track_length,
         )
-        for sid, site, owner, filter, model_id, st, created_at, last_seq, track_length, t, x, y, floor, c, source
+        for sid, site, owner, filter, model_id, st, created_at, last_seq, track_length, t, x, y, floor, c, source, building
         in tuples(s.execute(query))
     ]
 
@@ -305,22 +307,24 @@ def save_batch(
 
 
 def nearby_crowd_points(
-    conn: Connection, site_id: int, floor: int, x: float, y: float, radius_m: float
+    conn: Connection, site_id: int, floor: int, x: float, y: float, radius_m: float, building: int = 0,
 ) -> list[tuple[int, CrowdPoint]]:
-    """(id, point) of the crowd fingerprints of a floor in the box of ±radius around (x, y),
+    """(id, point) of the crowd fingerprints of a floor of a building in the box of ±radius around (x, y),
     locked for the merge. A stored point keeps its merged count, not per-transmitter counts."""
     rows = conn.execute(_NEARBY_CROWD, {
-        "site_id": site_id, "floor": floor, "x0": x - radius_m, "x1": x + radius_m, "y0": y - radius_m,
-        "y1": y + radius_m,
+        "site_id": site_id, "building": building, "floor": floor, "x0": x - radius_m, "x1": x + radius_m,
+        "y0": y - radius_m, "y1": y + radius_m,
     })
-    return [(fid, CrowdPoint(px, py, pfloor, rss, samples)) for fid, px, py, pfloor, rss, samples in tuples(rows)]
+    return [(fid, CrowdPoint(px, py, pfloor, rss, samples, building=building))
+            for fid, px, py, pfloor, rss, samples in tuples(rows)]
 
 
 def add_crowd_fingerprint(
     conn: Connection, site_id: int, point: CrowdPoint, heading_deg: float | None, t: float | None
 ) -> None:
     conn.execute(_INSERT_CROWD, [{
-        "site_id": site_id, "source": "crowd", "floor": point.floor, "x": point.x, "y": point.y,
+        "site_id": site_id, "source": "crowd", "building": point.building, "floor": point.floor, "x": point.x,
+        "y": point.y,
         "heading_deg": None if heading_deg is None else heading_deg % 360.0, "t": t, "device": None,
         "rss": point.rss, "samples": point.count,
     }])

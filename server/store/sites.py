@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload
 
-from server.domain import Floor, NewSite, Site, SiteContextRecord, SiteCounts, Transmitter, Wall
+from server.domain import Floor, FloorId, NewSite, Polygon, Site, SiteContextRecord, SiteCounts, Transmitter, Wall
 from server.store._results import changed, tuples
 from server.tables import Fingerprint, ReferencePoint, new_revision
 from server.tables import Floor as FloorRow
@@ -26,8 +26,13 @@ def _walls(stored: Iterable[Iterable[float]] | None) -> tuple[Wall, ...]:
     return tuple((float(x1), float(y1), float(x2), float(y2)) for x1, y1, x2, y2 in stored or ())
 
 
+def _walkable(stored: Iterable[Iterable[Iterable[float]]] | None) -> tuple[Polygon, ...] | None:
+    return None if stored is None else tuple(tuple((float(x), float(y)) for x, y in ring) for ring in stored)
+
+
 def _floor(row: FloorRow) -> Floor:
-    return Floor(level=row.level, name=row.name, width_m=row.width_m, height_m=row.height_m, walls=_walls(row.walls))
+    return Floor(level=row.level, name=row.name, width_m=row.width_m, height_m=row.height_m, walls=_walls(row.walls),
+                 building=row.building, walkable=_walkable(row.walkable))
 
 
 def _site(row: SiteRow) -> Site:
@@ -39,7 +44,9 @@ def _site(row: SiteRow) -> Site:
 
 def add_site(s: Session, new: NewSite) -> Site:
     floors = [
-        FloorRow(level=f.level, name=f.name, width_m=f.width_m, height_m=f.height_m, walls=[list(w) for w in f.walls])
+        FloorRow(building=f.building, level=f.level, name=f.name, width_m=f.width_m, height_m=f.height_m,
+                 walls=[list(w) for w in f.walls],
+                 walkable=None if f.walkable is None else [[list(p) for p in ring] for ring in f.walkable])
         for f in new.floors
     ]
     row = SiteRow(name=new.name, floors=floors)
@@ -109,13 +116,15 @@ def site_counts(s: Session, site_ids: Iterable[int]) -> dict[int, SiteCounts]:
     return {site_id: SiteCounts(**found) for site_id, found in counts.items()}
 
 
-def floor_levels(s: Session, site_id: int) -> set[int]:
-    return set(s.scalars(select(FloorRow.level).where(FloorRow.site_id == site_id)))
+def floor_ids(s: Session, site_id: int) -> set[FloorId]:
+    """The site's declared floors as (building, level) pairs."""
+    return set(tuples(s.execute(select(FloorRow.building, FloorRow.level).where(FloorRow.site_id == site_id))))
 
 
-def floor_walls(s: Session, site_id: int, level: int) -> tuple[Wall, ...]:
+def floor_walls(s: Session, site_id: int, level: int, building: int = 0) -> tuple[Wall, ...]:
     """The wall segments of one floor of a site (none when the floor is not declared)."""
-    return _walls(s.scalar(select(FloorRow.walls).where(FloorRow.site_id == site_id, FloorRow.level == level)))
+    return _walls(s.scalar(select(FloorRow.walls).where(
+        FloorRow.site_id == site_id, FloorRow.building == building, FloorRow.level == level)))
 
 
 # --- settings and revision --------------------------------------------------------------------
@@ -156,22 +165,22 @@ def site_context(s: Session, site_id: int) -> SiteContextRecord | None:
     site = s.execute(select(SiteRow.revision, SiteRow.settings).where(SiteRow.id == site_id)).first()
     if site is None:
         return None
-    floors = s.execute(select(FloorRow.level, FloorRow.walls).where(FloorRow.site_id == site_id))
+    floors = s.execute(select(FloorRow.building, FloorRow.level, FloorRow.walls).where(FloorRow.site_id == site_id))
     return SiteContextRecord(
         revision=site.revision,
         settings=dict(site.settings or {}),
-        walls={level: _walls(walls) for level, walls in tuples(floors)},
+        walls={(building, level): _walls(walls) for building, level, walls in tuples(floors)},
         transmitters=tuple(positioned_transmitters(s, site_id)),
     )
 
 
 # --- transmitters -----------------------------------------------------------------------------
 
-_TRANSMITTER_FIELDS = ("kind", "floor", "x", "y", "tx_power_dbm", "path_loss_exponent")
+_TRANSMITTER_FIELDS = ("kind", "floor", "x", "y", "tx_power_dbm", "path_loss_exponent", "building")
 #: the columns of a ``Transmitter``, in its fields' order
 _TRANSMITTER = select(
     TransmitterRow.tx_id, TransmitterRow.kind, TransmitterRow.floor, TransmitterRow.x, TransmitterRow.y,
-    TransmitterRow.tx_power_dbm, TransmitterRow.path_loss_exponent,
+    TransmitterRow.tx_power_dbm, TransmitterRow.path_loss_exponent, TransmitterRow.building,
 )
 
 

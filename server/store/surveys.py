@@ -1,7 +1,7 @@
 """Survey uploads, the reference points they create and the fingerprints they store.
 
 Survey and crowd fingerprints share one table, kept apart by ``source``; reference
-points are keyed by ``(floor, label)`` or ``(floor, x, y)`` to the millimetre.
+points are keyed by ``(building, floor, label)`` or ``(building, floor, x, y)`` to the millimetre.
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def ranges_of(rows: Iterable[int]) -> list[tuple[int, int]]:
 
 
 def reference_point_key(fp: FingerprintRecord) -> str:
-    """Fingerprints sharing (floor, key) share a reference point: by label, else by position (mm)."""
+    """Fingerprints sharing (building, floor, key) share a reference point: by label, else by position (mm)."""
     return f"label:{fp.label}" if fp.label is not None else f"xy:{round(fp.x, 3):g},{round(fp.y, 3):g}"
 
 
@@ -76,7 +76,7 @@ def add_survey(
 ) -> SurveyOutcome:
     """Store a validated survey: reference points, unseen transmitters and fingerprints, in bulk.
     ``rows``: the file rows of ``source`` the fingerprints are (remembered, so no later upload stores them again)."""
-    keys = [(fp.floor, reference_point_key(fp)) for fp in fingerprints]
+    keys = [(fp.building, fp.floor, reference_point_key(fp)) for fp in fingerprints]
     rp_ids, created = _ensure_reference_points(s, site_id, fingerprints, keys)
     add_heard_transmitters(s, site_id, {tx for fp in fingerprints for tx in fp.rss})
     upload = SurveyUpload(
@@ -97,6 +97,7 @@ def add_survey(
                 "source": "survey",
                 "reference_point_id": rp_ids[key],
                 "upload_id": upload.id,
+                "building": fp.building,
                 "floor": fp.floor,
                 "x": fp.x,
                 "y": fp.y,
@@ -109,7 +110,7 @@ def add_survey(
             for fp, key in zip(fingerprints, keys, strict=True)
         ],
     )
-    _recentre_labelled_points(s, [rp_ids[k] for k in set(keys) if k[1].startswith("label:")])
+    _recentre_labelled_points(s, [rp_ids[k] for k in set(keys) if k[2].startswith("label:")])
     outcome = SurveyOutcome(
         accepted=len(fingerprints), reference_points=len(set(keys)), new_reference_points=created, skipped=skipped,
         already_stored=already_stored,
@@ -124,28 +125,35 @@ def add_survey(
     return outcome
 
 
+#: a reference point's identity on its site: (building, floor, key)
+RpKey = tuple[int, int, str]
+
+
 def _ensure_reference_points(
-    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], keys: list[tuple[int, str]]
-) -> tuple[dict[tuple[int, str], int], int]:
+    s: Session, site_id: int, fingerprints: Sequence[FingerprintRecord], keys: list[RpKey]
+) -> tuple[dict[RpKey, int], int]:
     """Ids of the reference points for ``keys``, creating the missing ones; also how many were new."""
-    ids: dict[tuple[int, str], int] = {}
-    stored = select(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key).where(ReferencePoint.site_id == site_id)
-    for rp_id, floor, rp_key in s.execute(stored):
-        ids[(floor, rp_key)] = rp_id
-    first: dict[tuple[int, str], FingerprintRecord] = {}
+    ids: dict[RpKey, int] = {}
+    stored = select(ReferencePoint.id, ReferencePoint.building, ReferencePoint.floor, ReferencePoint.key).where(
+        ReferencePoint.site_id == site_id)
+    for rp_id, building, floor, rp_key in tuples(s.execute(stored)):
+        ids[(building, floor, rp_key)] = rp_id
+    first: dict[RpKey, FingerprintRecord] = {}
     for fp, key in zip(fingerprints, keys, strict=True):
         if key not in ids:
             first.setdefault(key, fp)
     if first:
         created = s.execute(
-            insert(ReferencePoint).returning(ReferencePoint.id, ReferencePoint.floor, ReferencePoint.key),
+            insert(ReferencePoint).returning(
+                ReferencePoint.id, ReferencePoint.building, ReferencePoint.floor, ReferencePoint.key),
             [
-                {"site_id": site_id, "floor": floor, "key": rp_key, "label": fp.label, "x": fp.x, "y": fp.y}
-                for (floor, rp_key), fp in first.items()
+                {"site_id": site_id, "building": building, "floor": floor, "key": rp_key, "label": fp.label,
+                 "x": fp.x, "y": fp.y}
+                for (building, floor, rp_key), fp in first.items()
             ],
         )
-        for rp_id, floor, rp_key in created:
-            ids[(floor, rp_key)] = rp_id
+        for rp_id, building, floor, rp_key in created:
+            ids[(building, floor, rp_key)] = rp_id
     return ids, len(first)
 
 
@@ -166,7 +174,7 @@ def _chunks(items: list[int], size: int) -> Iterator[list[int]]:
 
 
 def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
-    """The site's reference points with how many fingerprints each holds, by floor."""
+    """The site's reference points with how many fingerprints each holds, by (building, floor)."""
     counts = (
         select(Fingerprint.reference_point_id, func.count().label("n"))
         .where(Fingerprint.site_id == site_id)
@@ -174,16 +182,17 @@ def reference_points(s: Session, site_id: int) -> list[ReferencePointSummary]:
         .subquery()
     )
     rows = s.execute(
-        select(ReferencePoint.label, ReferencePoint.floor, ReferencePoint.x, ReferencePoint.y, func.coalesce(counts.c.n, 0))
+        select(ReferencePoint.label, ReferencePoint.floor, ReferencePoint.x, ReferencePoint.y, func.coalesce(counts.c.n, 0),
+               ReferencePoint.building)
         .outerjoin(counts, counts.c.reference_point_id == ReferencePoint.id)
         .where(ReferencePoint.site_id == site_id)
-        .order_by(ReferencePoint.floor, ReferencePoint.id)
+        .order_by(ReferencePoint.building, ReferencePoint.floor, ReferencePoint.id)
     )
     return [ReferencePointSummary(*row) for row in tuples(rows)]
 
 
-def coverage(s: Session, site_id: int, transmitter_id: str, floor: int) -> list[CoverageCell]:
-    """Per reference point of ``floor`` and per source: its fingerprints, how many heard ``transmitter_id``
+def coverage(s: Session, site_id: int, transmitter_id: str, floor: int, building: int = 0) -> list[CoverageCell]:
+    """Per reference point of ``floor`` of ``building`` and per source: its fingerprints, how many heard ``transmitter_id``
     and their mean RSS, in one query (JSON access as each backend spells it: SQLite ``JSON_EXTRACT``,
     PostgreSQL ``->>``; a fingerprint that did not hear the transmitter gives NULL, which ``count`` and
     ``avg`` skip). Crowd fingerprints belong to no reference point: one cell with ``reference_point_id`` None."""
@@ -194,7 +203,7 @@ def coverage(s: Session, site_id: int, transmitter_id: str, floor: int) -> list[
             Fingerprint.source, func.count(), func.count(rss), func.avg(rss),
         )
         .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
-        .where(Fingerprint.site_id == site_id, Fingerprint.floor == floor)
+        .where(Fingerprint.site_id == site_id, Fingerprint.building == building, Fingerprint.floor == floor)
         .group_by(
             Fingerprint.reference_point_id, ReferencePoint.label, ReferencePoint.x, ReferencePoint.y, Fingerprint.source,
         )
@@ -211,7 +220,7 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[Fingerp
     query = (
         select(
             Fingerprint.x, Fingerprint.y, Fingerprint.floor, Fingerprint.rss, Fingerprint.heading_deg,
-            Fingerprint.t, Fingerprint.device, ReferencePoint.label,
+            Fingerprint.t, Fingerprint.device, ReferencePoint.label, Fingerprint.building,
         )
         .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
         .where(Fingerprint.site_id == site_id)

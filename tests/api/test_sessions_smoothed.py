@@ -100,7 +100,7 @@ def test_the_smoothed_track_has_the_live_tracks_shape_and_is_no_worse(device, si
     for key in ("t", "floor", "source"):
         assert [e[key] for e in smoothed] == [e[key] for e in live]
     # no refused fix on this walk: the live answer is as before the extension (no new key)
-    assert all(set(e) == {"t", "x", "y", "floor", "covariance", "source"} for e in live + smoothed)
+    assert all(set(e) == {"t", "x", "y", "floor", "building", "covariance", "source"} for e in live + smoothed)
     live_err, smooth_err = _mean_error(live, truth), _mean_error(smoothed, truth)
     print(f'mean error: live {live_err:.2f} m, smoothed {smooth_err:.2f} m')
     assert smooth_err <= live_err, (smooth_err, live_err)

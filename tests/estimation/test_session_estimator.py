@@ -75,7 +75,7 @@ def test_steps_before_the_first_fix_are_dropped_and_the_first_scan_starts():
 def test_floor_change_needs_three_fixes_and_loads_the_new_walls():
     est = SessionEstimator("pf", seed=1)
     est.start([0.0, 0.0], None, 0, [], None, "init")
-    site = SiteMap(walls={0: [], 1: [[-1.0, 5.0, 1.0, 5.0]]})
+    site = SiteMap(walls={(0, 0): [], (0, 1): [[-1.0, 5.0, 1.0, 5.0]]})
     floors = []
     for i in range(3):
         e, _ = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), site)

@@ -36,7 +36,7 @@ def test_a_site_round_trips_with_its_floors_and_transmitters(db):
         assert site.name == "museum" and site.settings == {} and site.revision
         assert site.floors == (Floor(0, "ground", walls=(WALL,)), Floor(1, "first", 20.0, 10.0))  # by level
         assert sites.list_transmitters(s, added.id) == [AP1, AP2]
-        assert sites.floor_levels(s, added.id) == {0, 1}
+        assert sites.floor_ids(s, added.id) == {(0, 0), (0, 1)}
         assert sites.floor_walls(s, added.id, 0) == (WALL,)
         assert sites.floor_walls(s, added.id, 7) == ()
         assert sites.get_site(s, added.id + 1000) is None
@@ -131,7 +131,7 @@ def test_the_site_context_holds_what_a_fix_depends_on(db):
         assert context is not None
         assert context.revision == revision(db, site.id)
         assert context.settings == {"crowdsourcing": True}
-        assert context.walls == {0: (WALL,), 1: ()}
+        assert context.walls == {(0, 0): (WALL,), (0, 1): ()}
         assert context.transmitters == (AP1,)  # positioned ones only
         assert sites.site_context(s, site.id + 1000) is None
 
@@ -144,5 +144,5 @@ def test_deleting_a_site_deletes_what_it_holds(db):
         assert sites.delete_site(s, site.id)
     with db.transaction() as s:
         assert not sites.delete_site(s, site.id)
-        assert sites.list_transmitters(s, site.id) == [] and sites.floor_levels(s, site.id) == set()
+        assert sites.list_transmitters(s, site.id) == [] and sites.floor_ids(s, site.id) == set()
         assert sites.site_counts(s, [site.id]) == {site.id: SiteCounts()}

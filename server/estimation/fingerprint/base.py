@@ -351,12 +351,13 @@ class FingerprintModel:
         raise NotImplementedError
 
     def fixes(self, pred: Prediction) -> list[Fix]:
+        """One Fix per query: the (building, floor) the posterior chose, and candidates of that floor."""
         labels = self.rp_.labels
         out = []
         for i in range(len(pred)):
             cands = [
                 Candidate(label=labels[r], x=float(self.rp_xy_[r, 0]), y=float(self.rp_xy_[r, 1]),
-                          floor=int(self.rp_.floor[r]), probability=float(p))
+                          floor=int(self.rp_.floor[r]), probability=float(p), building=int(self.rp_.building[r]))
                 for r, p in zip(pred.top_rp[i], pred.top_p[i], strict=True) if p > 0 and r >= 0
             ]
             best = int(pred.best_rp[i])
@@ -364,7 +365,7 @@ class FingerprintModel:
                 x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
                 covariance=pred.covariance[i].copy(),
                 reference_point=labels[best] if best >= 0 else None,
-                candidates=cands,
+                candidates=cands, building=int(pred.building[i]),
             ))
         return out
 
