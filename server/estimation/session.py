@@ -25,7 +25,14 @@ import numpy as np
 
 from server.estimation.fingerprint.fusion import cold_start_fix
 from server.estimation.radio import multilaterate, range_and_std, range_from_rss
-from server.estimation.tracking import FloorTracker, LandmarkCorrector, apply_snap, make_tracker, tracker_from_dict
+from server.estimation.tracking import (
+    FloorTracker,
+    LandmarkCorrector,
+    ParticleFilterXYTracker,
+    apply_snap,
+    make_tracker,
+    tracker_from_dict,
+)
 from server.estimation.tracking.base import Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
@@ -151,6 +158,7 @@ class SessionEstimator:
         crowd: list[CrowdCandidate] = []
         applied_steps = applied_scans = 0
         for _, i, item in ordered:
+            self._use_plan(site)
             if isinstance(item, Step):
                 e = self.step(item)
                 if e is not None:
@@ -178,6 +186,11 @@ class SessionEstimator:
             applied_scans=applied_scans, skipped_scans=tuple(skipped), rejected_fixes=tuple(rejected),
             crowd=tuple(crowd), init_t=ordered[0][2].t if init_undated and ordered else None,
         )
+
+    def _use_plan(self, site: SiteMap) -> None:
+        """A PF kills particles outside its floor's walkable area (``SiteMap.walkable``, not stored)."""
+        if isinstance(self.tracker, ParticleFilterXYTracker) and self.floors is not None:
+            self.tracker.set_walkable(site.walkable.get(building_level(self.floors.floor)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -137,6 +138,8 @@ class SiteMap:
 
     beacons: dict[str, Beacon] = field(default_factory=dict)
     walls: dict[tuple[int, int], list] = field(default_factory=dict)
+    #: walkable area by (building, level), a ``floorplan.Walkable``; a floor without one is unconstrained
+    walkable: dict[tuple[int, int], Any] = field(default_factory=dict)
 
     def walls_of(self, level: int, building: int = 0) -> list:
         return self.walls.get((building, level), [])

@@ -17,7 +17,9 @@ from server.db import Database
 from server.domain import ServingModel
 from server.errors import NotFound
 from server.estimation.types import Beacon, SiteMap
+from server.services.floorplans import usable_areas
 from server.services.lru import Lru
+from server.store import floorplans as plan_store
 from server.store import models as model_store
 from server.store import sites as store
 
@@ -50,6 +52,7 @@ class SiteContexts:
         with self._db.transaction() as s:
             found = store.site_context(s, site_id)
             active = model_store.serving_model(s, site_id, None)
+            walkable = plan_store.walkable_areas(s, site_id)
         if found is None:
             raise NotFound(f"site {site_id} does not exist")
         return SiteContext(
@@ -62,6 +65,7 @@ class SiteContexts:
                     if t.x is not None and t.y is not None
                 },
                 walls={floor: list(walls) for floor, walls in found.walls.items()},
+                walkable=usable_areas(walkable),
             ),
             active_model=None if active is None else active.ready(),
         )
