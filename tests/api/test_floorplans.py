@@ -41,7 +41,7 @@ def test_a_plan_lands_on_the_floor_in_site_metres(admin, site):
     assert area.contains(np.array([[10, 10], [100, 20], [100, 70]])).tolist() == [True, True, False]
     floor = next(fl for fl in admin.get(f"/api/v1/sites/{site}").json()["floors"] if fl["level"] == 0)
     assert floor["walls"] == plan["walls"]
-    assert floor.get("walkable", plan["walkable"]) == plan["walkable"]
+    assert floor["walkable"] == plan["walkable"]
     # an explicit matrix (here the same one) gives the same plan; importing again replaces it
     again = put_plan(admin, site, {"geojson": plan_geojson(), "transform": {"matrix": plan["matrix"]}})
     assert again.status_code == 200 and again.json()["walls"] == plan["walls"]
