@@ -43,3 +43,21 @@ def test_fit_calibration_recovers_a_known_scale():
     got = fit_calibration(r, cov)
     assert 4.5 <= got.scale <= 7.5 and got.floor_m ** 2 <= 0.2 * got.scale, got  # the floor is minor here
     assert fit_calibration(r[:5], cov[:5]) == IDENTITY  # too few residuals to say anything
+
+
+def test_a_small_sample_fits_a_shrunk_scale_only():
+    """A dozen residuals cannot separate a scale from a floor: the scale alone, pulled towards 1
+    (the fewer residuals, the more), and never a floor."""
+    from server.estimation.fingerprint.calibration import SHRINK_N, TWO_PARAMETERS_FROM
+
+    rng = np.random.default_rng(1)
+    cov = np.repeat(np.eye(2)[None], 4000, axis=0)
+    r = rng.standard_normal((4000, 2)) * 3.0  # true scale 9
+    small = [fit_calibration(r[:n], cov[:n]) for n in (12, 60, TWO_PARAMETERS_FROM - 1)]
+    assert all(c.floor_m == 0.0 for c in small)
+    scales = [c.scale for c in small]
+    assert 1.0 < scales[0] < scales[1] < scales[2] < 12.0, scales
+    # the shrinkage is the stated one: log s = n/(n + SHRINK_N) · log ŝ
+    n = 60
+    raw = np.exp(np.log(scales[1]) * (n + SHRINK_N) / n)
+    assert 6.0 < raw < 13.0
