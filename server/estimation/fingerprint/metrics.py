@@ -104,9 +104,10 @@ def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Met
 
 
 def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2, seed: int = 0):
-    """(train, test, description). how: "user", "phone"/"device", "random", a per-row
-    group array of ``fs.meta`` (e.g. "power" of the UJI BLE set), or "auto"
-    (device groups when there are at least 3 devices, else random)."""
+    """(train, test, description). how: "user", "phone"/"device", "random", "points"
+    (every scan of a random ``test_fraction`` of the reference points), a per-row group
+    array of ``fs.meta`` (e.g. "power" of the UJI BLE set), or "auto" (device groups when
+    there are at least 3 devices, else random)."""
     if how == "auto":
         how = "device" if fs.device is not None and len(set(fs.device.astype(str))) >= 3 else "random"
     if how in ("phone", "device"):
@@ -118,6 +119,12 @@ def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 
     if how == "power" or (how in fs.meta and how != "skipped"):
         tr, te, held = group_split(fs, how, test_fraction, seed)
         return tr, te, f"held-out {how} {held}"
+    if how == "points":
+        row_rp = fs.reference_points().row_rp
+        n_rp = int(row_rp.max()) + 1 if len(row_rp) else 0
+        held = np.random.default_rng(seed).permutation(n_rp)[: max(1, round(test_fraction * n_rp))]
+        test = np.isin(row_rp, held)
+        return fs.subset(~test), fs.subset(test), f"held-out reference points ({len(held)} of {n_rp}, seed {seed})"
     if how == "random":
         tr, te = random_split(fs, test_fraction, seed)
         return tr, te, f"random {test_fraction:.0%} of rows (seed {seed})"
@@ -199,7 +206,13 @@ def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_
     """The server's training step: fit on a held-out split and `validate`, then fit a
     fresh model on all of ``fs`` carrying the calibration (reusing the split model's
     own choices, so the second fit does not cross-validate again). ``model_factory()`` returns
-    an unfitted model. Returns (model, Validation)."""
+    an unfitted model. Returns (model, Validation).
+
+    ``how="auto"``: held-out devices when the site has at least 3, else held-out
+    reference points — not random scans, whose residuals at surveyed points are too small
+    for a walker between them (a covariance calibrated on them is overconfident)."""
+    if how == "auto":
+        how = "device" if fs.device is not None and len(set(fs.device.astype(str))) >= 3 else "points"
     train, test, split = holdout_split(fs, how, test_fraction, seed)
     validated = model_factory().fit(train)
     del train  # memory: one training set's matrices at a time
