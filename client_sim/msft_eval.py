@@ -466,9 +466,11 @@ def tabulate(walks: list[dict]) -> tuple[dict, dict]:
     return table, per_walk
 
 
-def combine_folds(results: list[dict]) -> dict:
-    """One result from several folds: every walk is a test walk once."""
-    walks = [w | {"fold": i} for i, r in enumerate(results) for w in r["walks"]]
+def combine_folds(results: list[dict], fold_ids: list[int] | None = None) -> dict:
+    """One result from several folds: every walk is a test walk once (``fold_ids``: each
+    result's fold number, default 0, 1, …)."""
+    ids = fold_ids if fold_ids is not None else list(range(len(results)))
+    walks = [w | {"fold": ids[i]} for i, r in enumerate(results) for w in r["walks"]]
     table, per_walk = tabulate(walks)
     return {"data_dir": results[0]["data_dir"], "folds": [{k: r[k] for k in (
         "map_walks", "test_walks", "site_calibration", "map")} for r in results],
@@ -509,9 +511,12 @@ def main(a) -> int:
         raise CliError(f"no walk files under {a.data_dir}", EXIT_USAGE)
     if a.folds:
         only = getattr(a, "only_folds", None)
-        keep = range(a.folds) if not only else [int(k) for k in only.split(",")]
+        keep = list(range(a.folds)) if not only else [int(k) for k in only.split(",") if k.strip()]
+        if not keep or any(not 0 <= k < a.folds for k in keep):
+            raise CliError(f"--only-folds {only!r}: fold numbers from 0 to {a.folds - 1}", EXIT_USAGE)
         splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds]) for k in keep]
     else:
+        keep = None
         map_default, test_default = default_split(len(files), a.every)
         test_files = select_walks(files, a.test_walks, test_default)
         if a.map_walks:
@@ -549,7 +554,7 @@ def main(a) -> int:
                       flush=True)
             results.append(asyncio.run(run_msft(url, admin_key, device_key, Path(a.data_dir), map_files, test_files,
                                                 opt, progress=lambda s: print(s, flush=True))))
-        result = results[0] if len(results) == 1 else combine_folds(results)
+        result = results[0] if len(results) == 1 else combine_folds(results, keep)
     finally:
         if server is not None:
             stop_server(server)
