@@ -107,6 +107,8 @@ class SessionEstimator:
         self.gated_in_a_row = 0
         #: how much this session's fixes scatter against their own covariance (fixnoise.py)
         self.fix_noise = FixNoiseScale()
+        #: the site's walls the tracker was last given (not stored: they come from the site)
+        self._plan_walls: list | None = None
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
         #: appends (squared Mahalanobis distance before any inflation, accepted)
         self.innovations: list[tuple[float, bool]] | None = None
@@ -119,6 +121,7 @@ class SessionEstimator:
     def start(self, mean, cov, floor: int, walls, t: float | None, source: str, building: int = 0) -> Estimate:
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
         self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed, **self.tracker_params)
+        self._plan_walls = walls
         self.floors = FloorTracker(floor_key(building, floor))
         return self._record(t, source)
 
@@ -188,9 +191,18 @@ class SessionEstimator:
         )
 
     def _use_plan(self, site: SiteMap) -> None:
-        """A PF kills particles outside its floor's walkable area (``SiteMap.walkable``, not stored)."""
-        if isinstance(self.tracker, ParticleFilterXYTracker) and self.floors is not None:
-            self.tracker.set_walkable(site.walkable.get(building_level(self.floors.floor)))
+        """The floor plan comes from the site, not from the stored state: the tracker's floor's
+        walls (set when they are not the ones it has), and for a PF the walkable area whose
+        outside kills particles. A plan imported while a session is open applies at its next input."""
+        if self.tracker is None or self.floors is None:
+            return
+        building, level = building_level(self.floors.floor)
+        walls = site.walls_of(level, building)
+        if walls is not self._plan_walls:
+            self.tracker.set_walls(walls)
+            self._plan_walls = walls
+        if isinstance(self.tracker, ParticleFilterXYTracker):
+            self.tracker.set_walkable(site.walkable.get((building, level)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint
@@ -238,7 +250,8 @@ class SessionEstimator:
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
             # A confirmed floor change (maybe into another building): its walls, restart from the fix there.
-            self.tracker.set_walls(site.walls_of(fix.floor, fix.building))
+            self._plan_walls = site.walls_of(fix.floor, fix.building)
+            self.tracker.set_walls(self._plan_walls)
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
         elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)
@@ -304,7 +317,7 @@ class SessionEstimator:
             "filter": self.filter,
             "seed": self.seed,
             "tracker_params": dict(self.tracker_params),
-            "tracker": None if self.tracker is None else self.tracker.to_dict(),
+            "tracker": None if self.tracker is None else self.tracker.to_dict(walls=False),
             "floors": None if self.floors is None else self.floors.to_dict(),
             "landmarks": self.landmarks.to_dict(),
             "last_t": self.last_t,

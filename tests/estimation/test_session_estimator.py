@@ -10,7 +10,7 @@ import pytest
 
 from server.estimation.session import SessionEstimator, multilateration_fix, time_order
 from server.estimation.tracking import tracker_names
-from server.estimation.types import Beacon, Estimate, Fix, Scan, SiteMap, Step
+from server.estimation.types import Beacon, Estimate, Fix, NoFix, Scan, SiteMap, Step
 
 BEACONS = {
     "ble:b1": Beacon("ble:b1", 5.0, 0.0, 0, -59.0, 2.0),
@@ -153,3 +153,24 @@ def test_multilateration_fix_from_three_anchors():
     fix = multilateration_fix(rss, BEACONS)
     assert fix.floor == 0 and np.hypot(fix.x - 3.0, fix.y - 4.0) < 0.5
     assert multilateration_fix({"wifi:unknown": -50.0}, BEACONS) is None
+
+
+class _NoFixes:
+    def fix(self, scan: Scan, near) -> Fix:
+        raise NoFix("no model")
+
+
+def test_walls_come_from_the_site_not_from_the_stored_state():
+    """A session's state does not carry its floor's walls (a real plan has hundreds); each batch
+    takes them from the site, so a plan imported while the session is open applies at once."""
+    site = SiteMap(walls={(0, 0): [[-1.0, 5.0, 1.0, 5.0]]})
+    est = SessionEstimator("pf-xy", seed=1)
+    est.start([0.0, 0.0], None, 0, site.walls_of(0), None, "init")
+    stored = json.loads(json.dumps(est.to_dict()))
+    assert stored["tracker"]["walls"] == []
+    back = SessionEstimator.from_dict(stored)
+    back.apply_batch([Step(1.0, 0.7, 0.0)], [], _NoFixes(), site)
+    assert back.tracker.walls.tolist() == [[-1.0, 5.0, 1.0, 5.0]]
+    replanned = SiteMap(walls={(0, 0): [[-1.0, 5.0, 1.0, 5.0], [3.0, -1.0, 3.0, 1.0]]})
+    back.apply_batch([Step(2.0, 0.7, 0.0)], [], _NoFixes(), replanned)
+    assert len(back.tracker.walls) == 2

@@ -195,12 +195,14 @@ class Tracker(ABC):
     def _load_state(self, state: dict[str, Any]) -> None:
         """Inverse of ``_state``."""
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self, walls: bool = True) -> dict[str, Any]:
+        """JSON-safe state; ``walls=False`` leaves the walls out (a session takes them from its
+        site before every batch, so they need not be stored with each session)."""
         return {
             "filter": self.name,
             "version": FORMAT_VERSION,
             "params": dict(self.params),
-            "walls": self.walls.tolist(),
+            "walls": self.walls.tolist() if walls else [],
             "state": self._state(),
         }
 
