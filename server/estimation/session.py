@@ -182,7 +182,7 @@ class SessionEstimator:
                 rejected.append(ScanNote(i, refused))
             elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
                   and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
-                point = replace(make_crowd_point(e.x, e.y, e.floor, item.rss), building=e.building)
+                point = make_crowd_point(e.x, e.y, e.floor, item.rss, e.building)
                 crowd.append(CrowdCandidate(point, item))
         return BatchOutcome(
             estimates=tuple(estimates), estimate=self.estimate, applied_steps=applied_steps,
@@ -219,8 +219,7 @@ class SessionEstimator:
                                  building_hint=None if fingerprint is None else fingerprint.building)
         if fingerprint is None and ml is None:
             raise why if why is not None else NoFix("no fix")
-        fused = cold_start_fix(fingerprint, ml)
-        return replace(fused, building=(fingerprint or fused).building)
+        return cold_start_fix(fingerprint, ml)
 
     # -- single inputs --------------------------------------------------------------
     def advance(self, t: float) -> None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TypeVar
 
 from sqlalchemy import Connection
@@ -133,7 +133,7 @@ class SessionService:
             _visible(store.get_session(s, session_id), principal, session_id)
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
-        return (_smoothed(track) if smoothed else track), refused
+        return (smooth_track(track) if smoothed else track), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
@@ -236,12 +236,6 @@ class SessionService:
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
 
-def _smoothed(track: list[Estimate]) -> list[Estimate]:
-    """The RTS-smoothed track, each estimate in its own building (the smoother keeps every estimate's
-    place in the list, and its floor, but not its building)."""
-    return [replace(smooth, building=e.building) for smooth, e in zip(smooth_track(track), track, strict=True)]
-
-
 def _crowdsource(conn: Connection, site_id: int, candidates: Sequence[CrowdCandidate]) -> None:
     """Merge each confident (estimate, scan) into the nearest crowd point within 1 m of its floor, or insert it."""
     for c in candidates:
@@ -252,7 +246,7 @@ def _crowdsource(conn: Connection, site_id: int, candidates: Sequence[CrowdCandi
             store.add_crowd_fingerprint(conn, site_id, p, c.scan.heading_deg, c.scan.t)
         else:
             fid, q = stored[target]
-            store.update_crowd_fingerprint(conn, fid, replace(merge_points(q, p), building=p.building))
+            store.update_crowd_fingerprint(conn, fid, merge_points(q, p))
 
 
 def _reason(exc: ServiceError) -> str:

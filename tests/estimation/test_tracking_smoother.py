@@ -73,3 +73,15 @@ def test_smoothing_beats_the_live_track_and_a_floor_change_splits_it():
     # the last estimate before the change is its interval's end: the smoother leaves it as it was
     assert (smoothed[cut - 1].x, smoothed[cut - 1].y) == (track[cut - 1].x, track[cut - 1].y)
     assert smooth_track([]) == []
+
+
+def test_a_building_change_at_the_same_level_splits_the_track_and_keeps_each_building():
+    from dataclasses import replace
+
+    walk = simulate_walk(seed=4, legs=((0.0, 30), (90.0, 30)), fix_std_m=2.0)
+    track, *_ = _track("ekf-xy", walk)
+    cut = len(track) // 2
+    track = [replace(e, building=1) if i >= cut else e for i, e in enumerate(track)]
+    smoothed = smooth_track(track)
+    assert [e.building for e in smoothed] == [e.building for e in track]
+    assert (smoothed[cut - 1].x, smoothed[cut - 1].y) == (track[cut - 1].x, track[cut - 1].y)

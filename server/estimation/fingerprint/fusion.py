@@ -30,7 +30,7 @@ def spread_distance(fix: Fix, scale_m: float = 1.0) -> float:
 
 def fuse_fixes(fixes: Sequence[Fix], distances: Sequence[float] | None = None, scale_m: float = 1.0) -> Fix:
     """Fuse several estimates of the same position with weights exp(−d) normalised.
-    The floor is that of the heaviest estimate; candidates and reference point too."""
+    The building and floor are those of the heaviest estimate; candidates and reference point too."""
     fixes = [f for f in fixes if f is not None]
     if not fixes:
         raise ValueError("nothing to fuse")
@@ -45,21 +45,21 @@ def fuse_fixes(fixes: Sequence[Fix], distances: Sequence[float] | None = None, s
         cov += wi * (np.asarray(f.covariance, dtype=float) + np.outer(d, d))
     top = fixes[int(np.argmax(w))]
     return Fix(x=float(mean[0]), y=float(mean[1]), floor=top.floor, covariance=cov,
-               reference_point=top.reference_point, candidates=list(top.candidates))
+               reference_point=top.reference_point, candidates=list(top.candidates), building=top.building)
 
 
 def cold_start_fix(fingerprint_fix: Fix | None, multilateration_fix: Fix | None,
                    d_fingerprint: float | None = None, d_multilateration: float | None = None,
                    scale_m: float = 1.0) -> Fix:
     """The initial fix of a session from a fingerprint estimate and a multilateration
-    estimate (either may be None). If their floors differ, the fingerprint's floor is
-    kept and the other estimate is dropped (never mix floors)."""
+    estimate (either may be None). If their floors (or buildings) differ, the fingerprint's
+    is kept and the other estimate is dropped (never mix floors)."""
     if fingerprint_fix is None or multilateration_fix is None:
         only = fingerprint_fix or multilateration_fix
         if only is None:
             raise ValueError("nothing to fuse")
         return only
-    if fingerprint_fix.floor != multilateration_fix.floor:
+    if (fingerprint_fix.building, fingerprint_fix.floor) != (multilateration_fix.building, multilateration_fix.floor):
         return fingerprint_fix
     d = None
     if d_fingerprint is not None or d_multilateration is not None:

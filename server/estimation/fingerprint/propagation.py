@@ -208,4 +208,4 @@ class PropagationModel(FingerprintModel):
         if len(self.rp_xy_):
             return super().fixes(pred)
         return [Fix(x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
-                    covariance=pred.covariance[i].copy()) for i in range(len(pred))]
+                    covariance=pred.covariance[i].copy(), building=int(pred.building[i])) for i in range(len(pred))]

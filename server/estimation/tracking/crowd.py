@@ -53,8 +53,9 @@ def gate(
     return GateDecision(True, "ok")
 
 
-def make_crowd_point(x: float, y: float, floor: int, rss: dict[str, float]) -> CrowdPoint:
-    return CrowdPoint(float(x), float(y), int(floor), {k: float(v) for k, v in rss.items()}, 1, dict.fromkeys(rss, 1))
+def make_crowd_point(x: float, y: float, floor: int, rss: dict[str, float], building: int = 0) -> CrowdPoint:
+    return CrowdPoint(float(x), float(y), int(floor), {k: float(v) for k, v in rss.items()}, 1, dict.fromkeys(rss, 1),
+                      building=int(building))
 
 
 def merge_points(stored: CrowdPoint, new: CrowdPoint) -> CrowdPoint:
@@ -70,7 +71,7 @@ def merge_points(stored: CrowdPoint, new: CrowdPoint) -> CrowdPoint:
     return CrowdPoint(
         x=(stored.x * n1 + new.x * n2) / (n1 + n2),
         y=(stored.y * n1 + new.y * n2) / (n1 + n2),
-        floor=stored.floor, rss=rss, count=n1 + n2, counts=counts,
+        floor=stored.floor, rss=rss, count=n1 + n2, counts=counts, building=stored.building,
     )
 
 

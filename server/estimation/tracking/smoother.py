@@ -34,10 +34,10 @@ from server.estimation.types import Estimate
 
 
 def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
-    """[start, end) runs of one floor."""
+    """[start, end) runs of one floor (of one building)."""
     out, start = [], 0
     for i in range(1, len(track)):
-        if track[i].floor != track[i - 1].floor:
+        if (track[i].building, track[i].floor) != (track[i - 1].building, track[i - 1].floor):
             out.append((start, i))
             start = i
     if track:
@@ -77,5 +77,5 @@ def smooth_track(track: Sequence[Estimate]) -> list[Estimate]:
             P_s[k] = 0.5 * (P + P.T)
         for off, k in enumerate(index):
             e = track[a + off]
-            out[a + off] = Estimate.of(e.t, x_s[k], P_s[k], e.floor, e.source)
+            out[a + off] = Estimate.of(e.t, x_s[k], P_s[k], e.floor, e.source, e.building)
     return out
