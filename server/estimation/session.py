@@ -271,31 +271,34 @@ class SessionEstimator:
         return self._record(scan.t, "scan"), refused
 
     def _update(self, fix: Fix) -> str | None:
-        """Update with the fix unless the innovation gate refuses it (then: why). The fix's
-        covariance is first scaled by what this session has learned of its fixes' scatter
-        (``fix_noise``; every fix, refused or not, then teaches it) and an accepted one
-        updates with Student-t weight (``fixnoise``), unless the tracker weighs fixes by its
-        own rule. After
-        ``MAX_GATED_IN_A_ROW`` refusals in a row, each fix the gate would refuse first grows
-        the tracker's covariance by ``INFLATE_FACTOR`` and is tested again, so a lost
-        tracker is pulled back by fixes it has learned to trust less in itself."""
+        """Update with the fix unless the innovation gate refuses it (then: why).
+
+        A self-calibrating tracker (``Tracker.augmented``) first scales the fix's covariance by
+        what this session has learned of its fixes' scatter (``fix_noise``; every fix, refused
+        or not, then teaches it) and updates with Student-t weight (``fixnoise``). Covariance
+        matching needs a tracker whose own covariance is honest: a seed form's is not (it
+        does not model the PDR's bias), its innovations would blame the fixes for its drift
+        and it would trust them ever less, so the seed forms (``-xy``, ``kf``, ``fkf``) take
+        the fix as the model gives it. After ``MAX_GATED_IN_A_ROW`` refusals in a row, each
+        fix the gate would refuse first grows the tracker's covariance by ``INFLATE_FACTOR``
+        and is tested again, so a lost tracker is pulled back by fixes it has learned to
+        trust less in itself."""
         assert self.tracker is not None
         R_own = fix_cov(fix.covariance)
-        fix = replace(fix, covariance=R_own * self.fix_noise.scale)
-        R = fix.covariance
+        learns = self.tracker.augmented
+        R = R_own * self.fix_noise.scale if learns else R_own
+        fix = replace(fix, covariance=R)
         d2 = self._d2(fix, R)
         if self.innovations is not None:
             self.innovations.append((d2, d2 <= GATE_D2))
-        self.fix_noise.observe(fix.mean - np.asarray(self.tracker.mean, float), self.tracker.covariance, R_own)
+        if learns:
+            self.fix_noise.observe(fix.mean - np.asarray(self.tracker.mean, float), self.tracker.covariance, R_own)
         if d2 > GATE_D2 and self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
             self.tracker.inflate(INFLATE_FACTOR)
             d2 = self._d2(fix, R)
         if d2 <= GATE_D2:
             self.gated_in_a_row = 0
-            if self.tracker.weighs_fixes:  # its own adaptive-R rule: the fix as the model gave it
-                self.tracker.update(replace(fix, covariance=R_own))
-            else:
-                self.tracker.update(replace(fix, covariance=R * student_t_factor(d2)))
+            self.tracker.update(replace(fix, covariance=R * student_t_factor(d2)) if learns else fix)
             return None
         self.gated_in_a_row += 1
         distance = float(np.hypot(*(np.asarray(fix.mean, float) - self.tracker.mean)))

@@ -116,3 +116,15 @@ def test_refusals_stay_rare_when_the_fixes_are_overconfident():
     total = sum(o.applied_scans for o in outcomes)
     assert total > 250
     assert refused / total < 0.05
+
+
+@pytest.mark.parametrize("name", ["ekf-xy", "kf", "fkf"])
+def test_a_seed_form_takes_the_fix_as_the_model_gives_it(name):
+    """Covariance matching needs an honest tracker covariance; a seed form's is not (it does
+    not model the PDR's bias), so it neither learns a scale nor weighs fixes as a Student-t."""
+    steps, scans, truth_at = straight_walk(200)
+    est = SessionEstimator(name, seed=1)
+    est.start([0.0, 0.0], np.eye(2) * 0.1, 0, [], None, "init")
+    for _ in run_batches(est, steps, scans, OverconfidentFixes(truth_at, seed=5)):
+        pass
+    assert est.fix_noise.scale == 1.0 and est.fix_noise.weight == 0.0

@@ -108,20 +108,22 @@ def test_an_outlier_fix_is_refused_and_moves_nothing(name):
     assert refused is None and e.x > before[0] + 0.3 and est.gated_in_a_row == 0
 
 
-def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes():
+@pytest.mark.parametrize("name", ["ekf-xy", "ekf"])
+def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes(name):
     """The tracker, not the fixes, may be lost: after MAX_GATED_IN_A_ROW refusals each further
     fix the gate would refuse doubles the tracker's covariance first, so the far fixes are taken
     once the tracker's own uncertainty explains them (never blindly); the count is stored."""
     from server.estimation.session import GATE_D2, INFLATE_FACTOR, MAX_GATED_IN_A_ROW
 
-    est = SessionEstimator("ekf-xy", seed=3)
+    est = SessionEstimator(name, seed=3)
     est.start([0.0, 0.0], np.eye(2) * 1.0, 0, [], None, "init")
     for k in range(MAX_GATED_IN_A_ROW):
         est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
         _, refused = _scan_at(est, float(k), 30.0, 30.0)
         assert refused is not None and est.gated_in_a_row == k + 1
     # Each further far fix doubles P before the gate looks again, until d² = 1800 / (P + s) passes
-    # (s: the session's learned fix-noise scale; the far fixes have taught it to grow).
+    # (s: the session's learned fix-noise scale: the far fixes teach a self-calibrating
+    # tracker's to grow; a seed form's stays 1).
     from server.estimation.tracking.fixnoise import student_t_factor
 
     for k in range(30):
@@ -135,7 +137,8 @@ def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes():
             continue
         d2 = 1800.0 / (inflated + s)
         assert d2 <= GATE_D2 and est.gated_in_a_row == 0
-        gain = inflated / (inflated + s * student_t_factor(d2))
+        # a self-calibrating tracker weighs the fix as a Student-t; a seed form as a Gaussian
+        gain = inflated / (inflated + s * (student_t_factor(d2) if est.tracker.augmented else 1.0))
         assert (e.x, e.y) == pytest.approx((30.0 * gain, 30.0 * gain), abs=1e-6)
         break
     else:

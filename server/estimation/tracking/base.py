@@ -131,9 +131,6 @@ class Tracker(ABC):
     supports_range: ClassVar[bool] = False
     #: whether the state carries the PDR's heading bias and step scale (``selfcal``)
     augmented: ClassVar[bool] = False
-    #: whether ``update`` weighs a fix by its own adaptive-R rule (the fuzzy KF), so the
-    #: session hands it the model's fix as is (no learned scale, no Student-t weighting)
-    weighs_fixes: ClassVar[bool] = False
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed: int | None = None):
         self.walls = as_walls(walls)

@@ -47,7 +47,6 @@ SCALES = ("fix", "none")
 @register
 class FuzzyKFTracker(_LinearKF):
     name = "fkf"
-    weighs_fixes = True  # its fuzzy residual rule is its robust weighting
 
     def __init__(
         self,
