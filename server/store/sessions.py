@@ -137,7 +137,7 @@ def list_sessions(
         select(*_LIST_COLUMNS)
         .select_from(_SESSIONS.outerjoin(_ESTIMATES, and_(
             _ESTIMATES.c.session_id == _SESSIONS.c.id, _ESTIMATES.c.idx == _SESSIONS.c.track_length - 1)))
-        .order_by(_SESSIONS.c.created_at.desc(), _SESSIONS.c.id)
+        .order_by(_SESSIONS.c.created_at.desc(), _SESSIONS.c.id.desc())  # ix_tracking_sessions_created_id, read backwards
         .limit(limit)
     )
     if owner_key is not None:
