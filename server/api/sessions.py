@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
+import orjson
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 
@@ -108,12 +109,12 @@ def get_track(
         raise InvalidField("smoothed", "smoothed=true does not combine with since or limit: "
                                        "the smoothed track is read whole")
     page, refused_idx, more = sessions.track_page(principal, session_id, -1 if since is None else since, limit)
-    body = [track_estimate_out(e, idx in refused_idx).model_dump(mode="json", exclude_unset=True) for idx, e in page]
+    body = [track_estimate_json(e, idx in refused_idx) for idx, e in page]
     headers = {}
     if more and limit is not None:
         url = request.url.include_query_params(since=page[-1][0], limit=limit)
         headers["Link"] = f'<{url}>; rel="next"'
-    return JSONResponse(body, headers=headers)
+    return Response(orjson.dumps(body), media_type="application/json", headers=headers)
 
 
 @router.delete("/{session_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_NOT_YOURS)
@@ -125,6 +126,16 @@ def close_session(session_id: str, sessions: Sessions, principal: Device) -> Res
 def estimate_out(e: Estimate) -> EstimateOut:
     return EstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, building=e.building,
                        covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source)
+
+
+def track_estimate_json(e: Estimate, refused: bool) -> dict[str, Any]:
+    """``track_estimate_out(e, refused)`` dumped to JSON-ready data, built directly: a page of
+    1,000 pydantic models costs ≈ 10 ms, these dicts ≈ 1.5 ms (tests pin the two equal)."""
+    out: dict[str, Any] = {"t": e.t, "x": e.x, "y": e.y, "floor": e.floor, "building": e.building,
+                           "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
+    if refused:
+        out["fix_refused"] = True
+    return out
 
 
 def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:

@@ -123,3 +123,15 @@ def test_refused_fix_marks_on_pages_of_many_batches(device, site, positioning): 
             if "link" not in answer.headers:
                 break
         assert got == track, limit
+
+
+@pytest.mark.parametrize("refused", [False, True])
+@pytest.mark.parametrize("t", [None, 12.5])
+def test_page_items_are_the_schema_dump(refused, t):
+    """Pages build their items as plain dicts (the cost of 1,000 pydantic models): each equals
+    the documented schema's dump, with ``fix_refused`` only when true."""
+    from server.api.sessions import track_estimate_json, track_estimate_out
+    from server.estimation.types import Estimate
+
+    e = Estimate(t, 1.5, -2.25, 3, ((1.0, 0.1), (0.1, 2.0)), "scan", 2)
+    assert track_estimate_json(e, refused) == track_estimate_out(e, refused).model_dump(mode="json", exclude_unset=True)
