@@ -9,7 +9,7 @@ const COLORS = ["#2563eb", "#dc2626", "#059669", "#d97706", "#7c3aed", "#db2777"
 const CHI2_95 = 5.991; // 95 % of a 2-D Gaussian lies inside this squared Mahalanobis radius
 
 const S = {
-  key: null, scope: null, sites: [], site: null, floor: null, rps: [], txs: [], models: [], sessions: [],
+  key: null, scope: null, sites: [], site: null, building: 0, floor: null, rps: [], txs: [], models: [], sessions: [],
   tracks: new Map(), // session id -> {pts: [{idx, x, y, floor, covariance}], color, status}
   streams: [], bounds: null, replayTimer: null, algorithms: [], coverage: "",
   measured: null, // {tx, floor, body}: GET /coverage for the chosen transmitter and floor
@@ -192,19 +192,24 @@ async function selectSite(id) {
   const [txs, rps] = await Promise.all([api(`/api/v1/sites/${id}/transmitters`), api(`/api/v1/sites/${id}/reference-points`)]);
   S.txs = txs;
   S.rps = rps;
-  const levels = new Set([...S.site.floors.map((f) => f.level), ...rps.map((r) => r.floor), ...txs.filter((t) => t.floor !== null).map((t) => t.floor)]);
-  const sorted = [...levels].sort((a, b) => a - b);
-  if (!sorted.length) sorted.push(0);
-  const sel = $("floor");
-  sel.replaceChildren(...sorted.map((level) => {
-    const f = S.site.floors.find((x) => x.level === level);
+  // floors are (building, level) pairs: a level of building 1 is not building 0's
+  const keys = new Map();
+  for (const o of [...S.site.floors.map((f) => ({ building: f.building, floor: f.level })), ...rps, ...txs.filter((t) => t.floor !== null)]) {
+    const b = o.building ?? 0;
+    keys.set(`${b}:${o.floor}`, [b, o.floor]);
+  }
+  const sorted = [...keys.values()].sort((p, q) => p[0] - q[0] || p[1] - q[1]);
+  if (!sorted.length) sorted.push([0, 0]);
+  const several = new Set(sorted.map((k) => k[0])).size > 1;
+  $("floor").replaceChildren(...sorted.map(([b, level]) => {
+    const f = S.site.floors.find((x) => x.level === level && (x.building ?? 0) === b);
     const o = document.createElement("option");
-    o.value = level;
-    o.textContent = f && f.name ? `${level} · ${f.name}` : String(level);
+    o.value = `${b}:${level}`;
+    const name = f && f.name ? `${level} · ${f.name}` : String(level);
+    o.textContent = several ? `building ${b} · ${name}` : name;
     return o;
   }));
-  S.floor = sorted[0];
-  sel.value = String(S.floor);
+  showFloor(...sorted[0]);
   S.coverage = "";
   fillCoverage();
   S.bounds = null;
@@ -213,20 +218,35 @@ async function selectSite(id) {
   followSite();
 }
 
-$("floor").addEventListener("change", (e) => { S.floor = Number(e.target.value); S.coverage = ""; fillCoverage(); drawMap(); });
+// The shown floor: S.building and S.floor (its level), and the selector's value "building:level".
+function showFloor(building, level) {
+  S.building = building ?? 0;
+  S.floor = level;
+  $("floor").value = `${S.building}:${S.floor}`;
+}
+// Whether a reference point, transmitter or estimate is on the shown floor.
+const onShown = (o) => o.floor === S.floor && (o.building ?? 0) === S.building;
+
+$("floor").addEventListener("change", (e) => {
+  const [b, level] = e.target.value.split(":").map(Number);
+  showFloor(b, level);
+  S.coverage = "";
+  fillCoverage();
+  drawMap();
+});
 $("coverage").addEventListener("change", (e) => { S.coverage = e.target.value; loadCoverage(); });
 
 // Measured coverage when the shown floor has reference points; the modelled layer otherwise.
-const floorSurveyed = () => S.rps.some((r) => r.floor === S.floor);
+const floorSurveyed = () => S.rps.some(onShown);
 
 async function loadCoverage() {
-  const tx = S.coverage, floor = S.floor, site = S.site;
+  const tx = S.coverage, floor = S.floor, building = S.building, site = S.site;
   S.measured = null;
   if (tx && floorSurveyed()) {
     try {
-      const body = await api(`/api/v1/sites/${site.id}/coverage?transmitter=${encodeURIComponent(tx)}&floor=${floor}`);
-      if (S.coverage !== tx || S.floor !== floor || S.site !== site) return; // chosen again meanwhile
-      S.measured = { tx, floor, body };
+      const body = await api(`/api/v1/sites/${site.id}/coverage?transmitter=${encodeURIComponent(tx)}&floor=${floor}&building=${building}`);
+      if (S.coverage !== tx || S.floor !== floor || S.building !== building || S.site !== site) return; // chosen again meanwhile
+      S.measured = { tx, floor, building, body };
     } catch (err) {
       setStatus(`coverage: ${err.message}`);
     }
@@ -242,7 +262,7 @@ function fillCoverage() {
   off.value = "";
   off.textContent = "off";
   const measured = floorSurveyed();
-  const txs = S.txs.filter((t) => (measured || t.x !== null) && (t.floor === null || t.floor === S.floor));
+  const txs = S.txs.filter((t) => (measured || t.x !== null) && (t.floor === null || onShown(t)));
   $("coverage").replaceChildren(off, ...txs.map((t) => {
     const o = document.createElement("option");
     o.value = o.textContent = t.id;
@@ -258,7 +278,8 @@ const heatColor = (rss) => {
 };
 
 function drawCoverage(svg, b) {
-  const m = S.measured && S.measured.tx === S.coverage && S.measured.floor === S.floor ? S.measured.body : null;
+  const m = S.measured && S.measured.tx === S.coverage && S.measured.floor === S.floor && S.measured.building === S.building
+    ? S.measured.body : null;
   const t = S.txs.find((x) => x.id === S.coverage && x.x !== null);
   $("coverage-measured-legend").hidden = !m;
   svg.classList.toggle("coverage-measured", !!m);
@@ -360,18 +381,18 @@ function drawMap() {
   if (S.site) {
     drawCoverage(svg, b);
     drawErrors(svg, b);
-    const floor = S.site.floors.find((f) => f.level === S.floor);
+    const floor = S.site.floors.find((f) => f.level === S.floor && (f.building ?? 0) === S.building);
     const walls = el("g", { id: "walls" }, svg);
     for (const w of floor ? floor.walls : []) el("line", { x1: X(w[0]), y1: Y(w[1]), x2: X(w[2]), y2: Y(w[3]), class: "wall" }, walls);
     const rps = el("g", { id: "rps" }, svg);
     const base = b.size / 250;
-    for (const r of S.rps.filter((p) => p.floor === S.floor)) {
+    for (const r of S.rps.filter(onShown)) {
       const c = el("circle", { cx: X(r.x), cy: Y(r.y), r: base * Math.sqrt(1 + r.fingerprints), class: "rp", "data-label": r.label || "" }, rps);
       el("title", {}, c).textContent = `${r.label || "(no label)"} · (${r.x.toFixed(2)}, ${r.y.toFixed(2)}) m · ${r.fingerprints} fingerprints`;
     }
     const txs = el("g", { id: "txs" }, svg);
     const s = b.size / 90;
-    for (const t of S.txs.filter((t) => t.x !== null && (t.floor === null || t.floor === S.floor))) {
+    for (const t of S.txs.filter((t) => t.x !== null && (t.floor === null || onShown(t)))) {
       const shape = t.kind === "ble"
         ? el("rect", { x: X(t.x) - s / 2, y: Y(t.y) - s / 2, width: s, height: s, class: "tx ble", "data-id": t.id }, txs)
         : el("polygon", { points: `${X(t.x)},${Y(t.y) - s * 0.7} ${X(t.x) + s * 0.7},${Y(t.y)} ${X(t.x)},${Y(t.y) + s * 0.7} ${X(t.x) - s * 0.7},${Y(t.y)}`, class: "tx wifi", "data-id": t.id }, txs);
@@ -407,8 +428,7 @@ function drawErrors(svg, b) {
   $("errors-top").textContent = String(ERR_TOP_M);
   const g = el("g", { id: "errors-layer" }, svg);
   const r = b.size / 70;
-  const building = S.building ?? 0;
-  for (const p of S.errors.points.filter((q) => q.floor === S.floor && (q.building ?? 0) === building)) {
+  for (const p of S.errors.points.filter(onShown)) {
     const c = el("circle", { cx: X(p.x), cy: Y(p.y), r, class: "err", fill: errColor(p.mean_error_m),
       "data-label": p.label, "data-error": p.mean_error_m.toFixed(2) }, g);
     el("title", {}, c).textContent = `${p.label}: held-out mean error ${p.mean_error_m.toFixed(2)} m over ${p.n} scan${p.n === 1 ? "" : "s"}`;
@@ -444,12 +464,12 @@ function drawSessions() {
   layer.replaceChildren();
   const b = S.bounds || computeBounds();
   for (const [sid, tr] of S.tracks) {
-    const pts = S.scope === "admin" ? tr.pts.filter((p) => p.floor === S.floor) : tr.pts;
+    const pts = S.scope === "admin" ? tr.pts.filter(onShown) : tr.pts;
     if (!pts.length) continue;
     const g = el("g", { class: `session ${tr.status}`, "data-session": sid }, layer);
     if (tr.smooth && $("show-smoothed").checked) {
       // the smoothed track (GET …/track?smoothed=true), replayed at the same pace as the live one
-      const sm = tr.smooth.slice(0, tr.pts.length).filter((p) => S.scope !== "admin" || p.floor === S.floor);
+      const sm = tr.smooth.slice(0, tr.pts.length).filter((p) => S.scope !== "admin" || onShown(p));
       if (sm.length) {
         const line = el("polyline", { points: sm.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track smoothed", stroke: tr.color, "data-session": sid }, g);
         el("title", {}, line).textContent = `session ${sid.slice(0, 8)} · smoothed (RTS) track`;
@@ -555,8 +575,8 @@ async function showSession(s) {
   if (s.status === "open") {
     const tr = S.tracks.get(s.id);
     if (tr && tr.pts.length && S.scope === "admin") {
-      S.floor = tr.pts[tr.pts.length - 1].floor;
-      $("floor").value = String(S.floor);
+      const last = tr.pts[tr.pts.length - 1];
+      showFloor(last.building, last.floor);
       drawMap();
     }
     // the live stream does not say which fixes were refused: the stored track does (once, on selection)
@@ -572,7 +592,7 @@ async function showSession(s) {
   if (S.replayTimer) clearInterval(S.replayTimer);
   const tr = { pts: [], smooth, color: colorOf(s.id), status: "closed" };
   S.tracks.set(s.id, tr);
-  if (track.length && S.scope === "admin") { S.floor = track[0].floor; $("floor").value = String(S.floor); }
+  if (track.length && S.scope === "admin") showFloor(track[0].building, track[0].floor);
   S.bounds = null;
   drawMap();
   let i = 0;

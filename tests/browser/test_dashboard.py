@@ -75,7 +75,7 @@ def test_coverage_is_modelled_on_a_floor_without_survey(page, live_server, site,
     assert admin.put(f"/api/v1/sites/{site}/transmitters", json=[tx]).status_code == 200
     login(page, live_server.url, ADMIN_KEY)
     page.wait_for_selector("circle.rp")
-    page.select_option("#floor", "1")
+    page.select_option("#floor", "0:1")  # (building 0, level 1)
     page.select_option("#coverage", tx["id"])
     page.wait_for_selector("#coverage-layer.modelled rect.heat")
     assert page.locator("rect.heat").count() > 100 and page.locator("circle.cov").count() == 0
