@@ -20,22 +20,13 @@ import shapely
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.tracker_cost import best_us  # noqa: E402
 from client_sim.msft import read_walk  # noqa: E402
 from client_sim.msft_eval import walk_files  # noqa: E402
 from server.estimation import floorplan as floorplan_module  # noqa: E402
 from server.estimation.floorplan import Walkable, read_plan  # noqa: E402
 from server.estimation.tracking import ParticleFilterXYTracker, make_tracker, tracker_from_dict  # noqa: E402
 from server.estimation.types import Step  # noqa: E402
-
-
-def _best_us(fn, n: int) -> float:
-    best = float("inf")
-    for _ in range(3):
-        t0 = time.perf_counter()
-        for i in range(n):
-            fn(i)
-        best = min(best, (time.perf_counter() - t0) / n)
-    return best * 1e6
 
 
 def fit(data: Path, plan, area: Walkable) -> dict:
@@ -87,7 +78,7 @@ def main() -> None:
         threshold = floorplan_module.INDEX_FROM_WALLS
         floorplan_module.INDEX_FROM_WALLS = threshold if index else 10**9
         try:
-            cases[label] = _best_us(lambda i, t=t: t.predict(steps[i]), a.repeat)
+            cases[label] = best_us(lambda i, t=t: t.predict(steps[i]), a.repeat)
         finally:
             floorplan_module.INDEX_FROM_WALLS = threshold
     base = cases["no plan"]
@@ -96,7 +87,7 @@ def main() -> None:
     for label, walls in [("no walls", None), ("plan walls", plan.walls)]:
         t = make_tracker("pf", start, np.eye(2), walls=walls, seed=0)
         size = len(json.dumps(t.to_dict()))
-        us = _best_us(lambda i, t=t: tracker_from_dict(json.loads(json.dumps(t.to_dict()))), 20)
+        us = best_us(lambda i, t=t: tracker_from_dict(json.loads(json.dumps(t.to_dict()))), 20)
         print(f"pf store+load, {label}: {us:.0f} µs, {size / 1e3:.0f} kB JSON")
 
 

@@ -25,7 +25,7 @@ from server.estimation.types import Fix, Step  # noqa: E402
 WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
 
 
-def _time(fn, n: int) -> float:
+def best_us(fn, n: int) -> float:
     """Best of 3 runs of n calls, µs per call."""
     best = float("inf")
     for _ in range(3):
@@ -52,9 +52,9 @@ def bench(name: str, repeat: int, **params) -> dict[str, float]:
         tracker_from_dict(json.loads(json.dumps(t.to_dict())))
 
     return {
-        "predict_us": _time(predict, repeat),
-        "update_us": _time(update, repeat),
-        "store_load_us": _time(round_trip, max(repeat // 10, 10)),
+        "predict_us": best_us(predict, repeat),
+        "update_us": best_us(update, repeat),
+        "store_load_us": best_us(round_trip, max(repeat // 10, 10)),
         "state_bytes": len(json.dumps(t.to_dict())),
     }
 

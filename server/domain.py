@@ -321,19 +321,6 @@ class ModelInfo:
 
 
 @dataclass(frozen=True)
-class HeldOutPointError:
-    """A reference point of a model's held-out sample: its mean error over its held-out scans (m)."""
-
-    building: int
-    floor: int
-    x: float
-    y: float
-    label: str
-    n: int
-    mean_error_m: float
-
-
-@dataclass(frozen=True)
 class ServingModel:
     """A ready model with its artifact's SHA-256 (the model cache's key)."""
 

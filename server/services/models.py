@@ -8,8 +8,9 @@ from collections.abc import Callable
 from sqlalchemy.orm import Session
 
 from server.db import Database
-from server.domain import HeldOutPointError, ModelInfo, ModelSpec
+from server.domain import ModelInfo, ModelSpec
 from server.errors import Conflict, InvalidField, NotFound
+from server.estimation.fingerprint.metrics import PointError
 from server.services.training import build_model, held_out_points
 from server.store import models as store
 from server.store import sites as site_store
@@ -47,7 +48,7 @@ class ModelService:
         with self._db.transaction() as s:
             return _existing(s, site_id, model_id)
 
-    def held_out_errors(self, site_id: int, model_id: int) -> list[HeldOutPointError]:
+    def held_out_errors(self, site_id: int, model_id: int) -> list[PointError]:
         """Each held-out reference point's mean error, as the model's training measured it
         (where the radio map is weak); 409 until the model is ready."""
         with self._db.transaction() as s:

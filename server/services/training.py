@@ -28,9 +28,9 @@ import numpy as np
 from sqlalchemy.exc import IntegrityError
 
 from server.db import Database
-from server.domain import Activation, FingerprintRecord, HeldOutPointError, ModelInfo, ModelSpec, Transmitter
+from server.domain import Activation, FingerprintRecord, ModelInfo, ModelSpec, Transmitter
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
-from server.estimation.fingerprint.metrics import Validation
+from server.estimation.fingerprint.metrics import PointError, Validation
 from server.store import models as store
 from server.store import sites as site_store
 from server.store import surveys as survey_store
@@ -124,14 +124,14 @@ def metrics_record(v: Validation) -> dict[str, Any]:
     return _finite(figures)
 
 
-def held_out_points(metrics: Mapping[str, Any] | None) -> list[HeldOutPointError]:
+def held_out_points(metrics: Mapping[str, Any] | None) -> list[PointError]:
     """The ``points`` of a `metrics_record`, as domain records (none for a model trained on too
     few fingerprints to validate, or before this record existed)."""
     out = []
     for row in (metrics or {}).get("points") or []:
         b, f, x, y, label, n, err = row
         if err is not None:
-            out.append(HeldOutPointError(int(b), int(f), float(x), float(y), str(label), int(n), float(err)))
+            out.append(PointError(int(b), int(f), float(x), float(y), str(label), int(n), float(err)))
     return out
 
 
