@@ -35,16 +35,21 @@ def _ensure_postgres_database(url: str) -> None:
     engine.dispose()
 
 
+def reset_postgres_database(url: str) -> None:
+    """An empty PostgreSQL database at ``url``: created if missing, its public schema dropped."""
+    _ensure_postgres_database(url)
+    engine = create_engine(url)
+    with engine.begin() as conn:
+        conn.execute(text("DROP SCHEMA public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    engine.dispose()
+
+
 @pytest.fixture(scope="session")
 def database_url(tmp_path_factory: pytest.TempPathFactory) -> str:
     url = os.environ.get("LOCALIZER_TEST_DATABASE_URL")
     if url:
-        _ensure_postgres_database(url)
-        engine = create_engine(url)
-        with engine.begin() as conn:
-            conn.execute(text("DROP SCHEMA public CASCADE"))
-            conn.execute(text("CREATE SCHEMA public"))
-        engine.dispose()
+        reset_postgres_database(url)
     else:
         url = f"sqlite:///{tmp_path_factory.mktemp('db') / 'test.db'}"
     migrate.upgrade(url)

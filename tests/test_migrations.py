@@ -137,21 +137,15 @@ def _scratch_url(tmp_path, name: str) -> str:
     """A fresh empty database: SQLite in tmp_path, or a PostgreSQL database beside the test one."""
     import os
 
-    from sqlalchemy import text
     from sqlalchemy.engine import make_url
 
-    from tests.conftest import _ensure_postgres_database
+    from tests.conftest import reset_postgres_database
 
     url = os.environ.get("LOCALIZER_TEST_DATABASE_URL")
     if not url:
         return f"sqlite:///{tmp_path / f'{name}.db'}"
     url = make_url(url).set(database=f"{make_url(url).database}_{name}").render_as_string(hide_password=False)
-    _ensure_postgres_database(url)
-    engine = create_engine(url)
-    with engine.begin() as conn:
-        conn.execute(text("DROP SCHEMA public CASCADE"))
-        conn.execute(text("CREATE SCHEMA public"))
-    engine.dispose()
+    reset_postgres_database(url)
     return url
 
 
