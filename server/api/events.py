@@ -48,9 +48,11 @@ def _json(value: dict[str, Any]) -> str:
     return orjson.dumps(value).decode()
 
 
-def _estimate_data(idx: int, e: Estimate, session_id: str | None = None) -> str:
+def _estimate_data(idx: int, e: Estimate, refused: bool, session_id: str | None = None) -> str:
     data = estimate_out(e).model_dump(mode="json")
     data["idx"] = idx
+    if refused:  # as on the track: present (true) only on a scan whose fix the gate refused
+        data["fix_refused"] = True
     if session_id is not None:
         data["session_id"] = session_id
     return _json(data)
@@ -81,7 +83,8 @@ async def session_events(
 ) -> EventSourceResponse:
     """The session's track as it grows (extension). One event `estimate` per track estimate,
     from the first one (or after `Last-Event-ID`): its `data` the Estimate JSON plus `idx`, its
-    index in the track, which is also the event's `id`. An event `closed` (data
+    index in the track, which is also the event's `id`, and `fix_refused: true` on a scan whose
+    fix the innovation gate refused (as on the track). An event `closed` (data
     `{"session_id", "track_length"}`) ends the stream when the session is closed. A comment
     line is sent as a heartbeat every 15 s. Same visibility as `GET /sessions/{id}`."""
     await run_in_threadpool(sessions.get, principal, session_id)  # 404 before the stream starts
@@ -95,11 +98,11 @@ async def _session_stream(
     poll = _interval(request, "events_poll_s", DEFAULT_POLL_S)
     while True:
         try:
-            info, rows = await run_in_threadpool(sessions.track_after, principal, session_id, after, BATCH)
+            info, rows, refused = await run_in_threadpool(sessions.track_after, principal, session_id, after, BATCH)
         except NotFound:  # its site was deleted meanwhile
             return
         for idx, e in rows:
-            yield ServerSentEvent(_estimate_data(idx, e), event="estimate", id=str(idx))
+            yield ServerSentEvent(_estimate_data(idx, e, idx in refused), event="estimate", id=str(idx))
             after = idx
         if len(rows) == BATCH:
             continue
@@ -126,14 +129,14 @@ async def site_events(site_id: int, request: Request, sessions: Sessions, _: Adm
 
 async def _site_stream(
     request: Request, sessions: SessionService, site_id: int,
-    first: tuple[dict[str, int], list[tuple[str, int, Estimate]]],
+    first: tuple[dict[str, int], list[tuple[str, int, Estimate]], set[tuple[str, int]]],
 ) -> AsyncIterator[ServerSentEvent]:
     poll = _interval(request, "events_poll_s", DEFAULT_POLL_S)
-    open_, rows = first
+    open_, rows, refused = first
     cursors = {sid: length - 2 for sid, length in open_.items()}  # the last index sent per session
     while True:
         for sid, idx, e in rows:
-            yield ServerSentEvent(_estimate_data(idx, e, sid), event="estimate")
+            yield ServerSentEvent(_estimate_data(idx, e, (sid, idx) in refused, sid), event="estimate")
             cursors[sid] = idx
         for sid in [s for s in cursors if s not in open_]:
             del cursors[sid]
@@ -141,6 +144,6 @@ async def _site_stream(
         if len(rows) < BATCH:
             await asyncio.sleep(poll)
         try:
-            open_, rows = await run_in_threadpool(sessions.site_tracks_after, site_id, dict(cursors), BATCH)
+            open_, rows, refused = await run_in_threadpool(sessions.site_tracks_after, site_id, dict(cursors), BATCH)
         except NotFound:  # the site was deleted
             return

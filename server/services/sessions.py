@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import TypeVar
 
 from sqlalchemy import Connection
+from sqlalchemy.orm import Session
 
 from server.auth import Principal
 from server.db import Database
@@ -146,41 +147,46 @@ class SessionService:
             rows = store.estimates_after(s, session_id, since, 2**62 if limit is None else limit + 1)
             more = limit is not None and len(rows) > limit
             page = rows[:limit] if more else rows
-            seqs = store.batch_seq_range(s, session_id, page[0][0], page[-1][0]) if page else None
-            refused = set() if seqs is None else store.refused_fix_indexes(s, session_id, seqs)
+            refused = _refused_among(s, session_id, page)
         return page, refused, more
 
     def track_after(
         self, principal: Principal, session_id: str, after_idx: int, limit: int = 500
-    ) -> tuple[SessionInfo, list[tuple[int, Estimate]]]:
-        """The session (as the caller may see it) and its estimates after index ``after_idx``
-        (at most ``limit``), for a live stream. The session is read first: when it is closed,
-        the estimates read after it are all it will ever have (a closed session takes no batch)."""
+    ) -> tuple[SessionInfo, list[tuple[int, Estimate]], set[int]]:
+        """The session (as the caller may see it), its estimates after index ``after_idx`` (at
+        most ``limit``) and which of them are scans whose fix was refused, for a live stream.
+        The session is read first: when it is closed, the estimates read after it are all it
+        will ever have (a closed session takes no batch)."""
         with self.db.transaction() as s:
             info = _visible(store.get_session(s, session_id), principal, session_id)
-            return info, store.estimates_after(s, session_id, after_idx, limit)
+            rows = store.estimates_after(s, session_id, after_idx, limit)
+            return info, rows, _refused_among(s, session_id, rows)
 
     def site_tracks_after(
         self, site_id: int, cursors: dict[str, int] | None, limit: int = 500
-    ) -> tuple[dict[str, int], list[tuple[str, int, Estimate]]]:
-        """For a site's live stream (admin): its open sessions (id → track length) and the
-        estimates after each cursor (session id → last index sent). Without cursors (a stream's
-        first read) each open session's latest estimate; with cursors a session that has none
-        starts at its first estimate, and a session that has one but is no longer open gets
-        the estimates it had left."""
+    ) -> tuple[dict[str, int], list[tuple[str, int, Estimate]], set[tuple[str, int]]]:
+        """For a site's live stream (admin): its open sessions (id → track length), the
+        estimates after each cursor (session id → last index sent), and the (session, index)
+        of those that are scans whose fix was refused. Without cursors (a stream's first read)
+        each open session's latest estimate; with cursors a session that has none starts at
+        its first estimate, and a session that has one but is no longer open gets the
+        estimates it had left."""
         with self.db.transaction() as s:
             if site_store.site_settings(s, site_id) is None:
                 raise NotFound(f"site {site_id} does not exist")
             open_ = store.open_sessions_of_site(s, site_id)
             out: list[tuple[str, int, Estimate]] = []
+            refused: set[tuple[str, int]] = set()
             ended = [] if cursors is None else [(sid, after) for sid, after in cursors.items() if sid not in open_]
-            for sid, after in ended:
-                out.extend((sid, idx, e) for idx, e in store.estimates_after(s, sid, after, limit))
-            for sid, length in sorted(open_.items()):
-                after = length - 2 if cursors is None else cursors.get(sid, -1)
-                if length - 1 > after:
-                    out.extend((sid, idx, e) for idx, e in store.estimates_after(s, sid, after, limit))
-            return open_, out
+            wanted = ended + [(sid, length - 2 if cursors is None else cursors.get(sid, -1))
+                              for sid, length in sorted(open_.items())]
+            for sid, after in wanted:
+                if sid in open_ and open_[sid] - 1 <= after:
+                    continue  # nothing new
+                rows = store.estimates_after(s, sid, after, limit)
+                out.extend((sid, idx, e) for idx, e in rows)
+                refused |= {(sid, idx) for idx in _refused_among(s, sid, rows)}
+            return open_, out, refused
 
     def close(self, principal: Principal, session_id: str) -> None:
         """Closing is idempotent: closing a closed session is fine (204 again)."""
@@ -234,6 +240,15 @@ class SessionService:
                     return answer
             # lost the race (nothing was written): start over from the stored state
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
+
+
+def _refused_among(s: Session, session_id: str, rows: Sequence[tuple[int, Estimate]]) -> set[int]:
+    """Which of a run of consecutive track estimates (idx, estimate) are scans whose fix the gate
+    refused: only the batches that made them are read."""
+    if not rows:
+        return set()
+    seqs = store.batch_seq_range(s, session_id, rows[0][0], rows[-1][0])
+    return set() if seqs is None else store.refused_fix_indexes(s, session_id, seqs)
 
 
 def _crowdsource(conn: Connection, site_id: int, candidates: Sequence[CrowdCandidate]) -> None:

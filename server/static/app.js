@@ -478,7 +478,7 @@ function drawSessions() {
     el("polyline", { points: pts.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track live", stroke: tr.color }, g);
     const m = b.size / 120;
     for (const p of pts) {
-      if (!(p.fix_refused || (tr.refused && tr.refused.has(p.idx)))) continue;
+      if (!p.fix_refused) continue;
       // a scan whose fix the innovation gate refused: a cross at the estimate it left
       const mark = el("path", { d: `M${X(p.x) - m},${Y(p.y) - m}L${X(p.x) + m},${Y(p.y) + m}M${X(p.x) - m},${Y(p.y) + m}L${X(p.x) + m},${Y(p.y) - m}`, class: "refused", "data-session": sid, "data-idx": p.idx }, g);
       el("title", {}, mark).textContent = `session ${sid.slice(0, 8)} · #${p.idx} · fix refused by the innovation gate`;
@@ -579,11 +579,7 @@ async function showSession(s) {
       showFloor(last.building, last.floor);
       drawMap();
     }
-    // the live stream does not say which fixes were refused: the stored track does (once, on selection)
-    const stored = await api(`/api/v1/sessions/${s.id}/track`);
-    trackOf(s.id).refused = new Set(stored.flatMap((e, i) => (e.fix_refused ? [i] : [])));
-    scheduleDraw();
-    return;
+    return; // its estimates come from the live stream, each with its fix_refused mark
   }
   // replay a closed session: its stored track and its smoothed track, drawn over a few seconds
   const [track, smooth] = await Promise.all([

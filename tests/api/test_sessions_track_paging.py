@@ -135,3 +135,37 @@ def test_page_items_are_the_schema_dump(refused, t):
 
     e = Estimate(t, 1.5, -2.25, 3, ((1.0, 0.1), (0.1, 2.0)), "scan", 2)
     assert track_estimate_json(e, refused) == track_estimate_out(e, refused).model_dump(mode="json", exclude_unset=True)
+
+
+def test_live_streams_carry_the_refused_fix_marks(device, admin, site, positioning, live_server):  # noqa: F811
+    """The session's and the site's event streams mark the same estimates as the stored track."""
+    from tests.api.test_events import Stream
+
+    state = live_server.app.state
+    state.events_poll_s = 0.05
+    sid = open_session(device, site, "kf")["id"]
+    site_stream = Stream(admin, f"/api/v1/sites/{site}/events")
+    try:
+        far = {"t": 0.0, "rss": {"wifi:ap3": -40}}  # a fix at (0, 10): far from the walk along y = 2
+        for seq in range(6):
+            body = batch(seq, 2.0 * seq, 2, [{**far, "t": 2.0 * seq + 0.75}] if seq in (2, 4) else None)
+            assert device.post(f"/api/v1/sessions/{sid}/batches", json=body).status_code == 200
+        track = device.get(f"/api/v1/sessions/{sid}/track").json()
+        assert any("fix_refused" in e for e in track)
+        stream = Stream(device, f"/api/v1/sessions/{sid}/events")
+        try:
+            got = [e["data"] for e in stream.events(len(track))]
+        finally:
+            stream.close()
+        assert [{k: v for k, v in d.items() if k != "idx"} for d in got] == track
+        seen: dict[int, dict] = {}
+        while len(seen) < len(track) - 1 or max(seen, default=-1) < len(track) - 1:
+            d = site_stream.events(1)[0]["data"]
+            if d["session_id"] == sid:
+                seen[d["idx"]] = {k: v for k, v in d.items() if k not in ("idx", "session_id")}
+        # (the initial estimate was sent before the first batch gave it its time)
+        assert {i: d for i, d in seen.items() if i > 0 and d != track[i]} == {}, track
+        assert [i for i in seen if "fix_refused" in seen[i]] == [i for i, e in enumerate(track) if "fix_refused" in e]
+    finally:
+        site_stream.close()
+        del state.events_poll_s
