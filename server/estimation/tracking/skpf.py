@@ -197,10 +197,6 @@ _W4 = 1.0 / (2 * selfcal.N_AUG)
 _UPPER4 = tuple((i, k) for i in range(4) for k in range(i, 4))
 
 
-def _wdot(a: list[float], b: list[float]) -> float:
-    return _W4 * sum(p * q for p, q in zip(a, b, strict=True))
-
-
 @register
 class SKPFTracker(selfcal.Calibrating, Tracker):
     """Self-calibrating SKPF, state [x, y, b, s], the same algorithm in four dimensions.
@@ -253,32 +249,41 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         d = step.length_m
         x0, x1, x2, x3 = self.x.tolist()
         (a00, a01, a02, a03), (_, a11, a12, a13), (_, _, a22, a23), (_, _, _, a33) = self.P.tolist()
-        X0: list[float] = []
-        X1: list[float] = []
-        X2: list[float] = []
-        X3: list[float] = []
+        pts = []
         for c0, c1, c2, c3 in _chol4(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33):
             c0, c1, c2, c3 = _SQRT_N4 * c0, _SQRT_N4 * c1, _SQRT_N4 * c2, _SQRT_N4 * c3
-            for sg in (1.0, -1.0):
-                b, sc = x2 + sg * c2, x3 + sg * c3
-                X0.append(x0 + sg * c0 + sc * d * math.sin(h + b))
-                X1.append(x1 + sg * c1 + sc * d * math.cos(h + b))
-                X2.append(b)
-                X3.append(sc)
-        m0, m1, m2, m3 = sum(X0) * _W4, sum(X1) * _W4, sum(X2) * _W4, sum(X3) * _W4
-        D0, D1 = [v - m0 for v in X0], [v - m1 for v in X1]
-        D2, D3 = [v - m2 for v in X2], [v - m3 for v in X3]
+            for b, sc, e0, e1 in ((x2 + c2, x3 + c3, x0 + c0, x1 + c1), (x2 - c2, x3 - c3, x0 - c0, x1 - c1)):
+                sd = sc * d
+                pts.append((e0 + sd * math.sin(h + b), e1 + sd * math.cos(h + b), b, sc))
+        m0 = sum(p[0] for p in pts) * _W4
+        m1 = sum(p[1] for p in pts) * _W4
+        m2 = sum(p[2] for p in pts) * _W4
+        m3 = sum(p[3] for p in pts) * _W4
+        c00 = c01 = c02 = c03 = c11 = c12 = c13 = c22 = c23 = c33 = 0.0
+        for p0, p1, p2, p3 in pts:  # Σ (χ − x⁻)(χ − x⁻)ᵀ, its upper triangle
+            d0, d1, d2, d3 = p0 - m0, p1 - m1, p2 - m2, p3 - m3
+            c00 += d0 * d0
+            c01 += d0 * d1
+            c02 += d0 * d2
+            c03 += d0 * d3
+            c11 += d1 * d1
+            c12 += d1 * d2
+            c13 += d1 * d3
+            c22 += d2 * d2
+            c23 += d2 * d3
+            c33 += d3 * d3
         # + diag(q, q, σb², σs²) and G diag(σd², σh²) Gᵀ at the mean (its position block only).
         q = self._q_diag
         vd, vh = selfcal.step_input_var(step)
         sc2 = m3 * m3
         sa, ca = math.sin(h + m2), math.cos(h + m2)
         vdh = d * d * vh
-        c00 = _wdot(D0, D0) + sc2 * (sa * sa * vd + ca * ca * vdh) + q[0]
-        c11 = _wdot(D1, D1) + sc2 * (ca * ca * vd + sa * sa * vdh) + q[1]
-        c01 = _wdot(D0, D1) + sc2 * sa * ca * (vd - vdh)
-        c02, c03, c12, c13 = _wdot(D0, D2), _wdot(D0, D3), _wdot(D1, D2), _wdot(D1, D3)
-        c22, c23, c33 = _wdot(D2, D2) + q[2], _wdot(D2, D3), _wdot(D3, D3) + q[3]
+        w = _W4
+        c00 = w * c00 + sc2 * (sa * sa * vd + ca * ca * vdh) + q[0]
+        c11 = w * c11 + sc2 * (ca * ca * vd + sa * sa * vdh) + q[1]
+        c01 = w * c01 + sc2 * sa * ca * (vd - vdh)
+        c02, c03, c12, c13 = w * c02, w * c03, w * c12, w * c13
+        c22, c23, c33 = w * c22 + q[2], w * c23, w * c33 + q[3]
         self.x = np.array((m0, m1, m2, m3))
         self.P = np.array(((c00, c01, c02, c03), (c01, c11, c12, c13), (c02, c12, c22, c23), (c03, c13, c23, c33)))
 
