@@ -69,10 +69,11 @@ def list_sessions(
     site_id: Annotated[int | None, Query(ge=-(2**31), le=2**31 - 1, description="Only this site's sessions.")] = None,
     status: Annotated[Literal["open", "closed"] | None, Query(description="Only open or only closed sessions.")] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="At most this many, newest first.")] = 100,
-) -> list[SessionOut]:
+) -> Response:
     """The sessions opened with the caller's key (an admin key sees every session), newest
     first: a phone that restarts can find the session it was feeding."""
-    return [session_out(info) for info in sessions.list_sessions(principal, site_id, status, limit)]
+    body = [session_json(info) for info in sessions.list_sessions(principal, site_id, status, limit)]
+    return Response(orjson.dumps(body, option=orjson.OPT_UTC_Z), media_type="application/json")
 
 
 @router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)
@@ -128,14 +129,27 @@ def estimate_out(e: Estimate) -> EstimateOut:
                        covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source)
 
 
+def estimate_json(e: Estimate) -> dict[str, Any]:
+    """``estimate_out(e)`` as JSON-ready data, built directly for the long lists (a track page,
+    a session list): 1,000 pydantic models cost ≈ 10 ms, these dicts ≈ 1.5 ms. Tests pin each
+    ``*_json`` equal to its schema's dump."""
+    return {"t": e.t, "x": e.x, "y": e.y, "floor": e.floor, "building": e.building,
+            "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
+
+
 def track_estimate_json(e: Estimate, refused: bool) -> dict[str, Any]:
-    """``track_estimate_out(e, refused)`` dumped to JSON-ready data, built directly: a page of
-    1,000 pydantic models costs ≈ 10 ms, these dicts ≈ 1.5 ms (tests pin the two equal)."""
-    out: dict[str, Any] = {"t": e.t, "x": e.x, "y": e.y, "floor": e.floor, "building": e.building,
-                           "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
+    """``track_estimate_out(e, refused)`` as JSON-ready data (``estimate_json``)."""
+    out = estimate_json(e)
     if refused:
         out["fix_refused"] = True
     return out
+
+
+def session_json(info: SessionInfo) -> dict[str, Any]:
+    """``session_out(info)`` as data for orjson (``estimate_json``; ``created_at`` stays a datetime)."""
+    return {"id": info.id, "site_id": info.site_id, "filter": info.filter, "model_id": info.model_id,
+            "status": info.status, "estimate": None if info.estimate is None else estimate_json(info.estimate),
+            "created_at": info.created_at, "last_seq": info.last_seq, "track_length": info.track_length}
 
 
 def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:

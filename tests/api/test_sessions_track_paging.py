@@ -169,3 +169,25 @@ def test_live_streams_carry_the_refused_fix_marks(device, admin, site, positioni
     finally:
         site_stream.close()
         del state.events_poll_s
+
+
+@pytest.mark.parametrize("with_estimate", [False, True])
+@pytest.mark.parametrize("microsecond", [0, 123456])
+def test_session_list_items_are_the_schema_dump(with_estimate, microsecond):
+    """Session lists are built as plain dicts and encoded by orjson: each item equals the
+    documented schema's JSON, the time included."""
+    import json
+    from datetime import UTC, datetime
+
+    import orjson
+
+    from server.api.sessions import session_json, session_out
+    from server.domain import SessionInfo
+    from server.estimation.types import Estimate
+
+    e = Estimate(3.5, 1.5, -2.25, 1, ((1.0, 0.1), (0.1, 2.0)), "step", 2) if with_estimate else None
+    info = SessionInfo(id="abc", site_id=7, owner_key="k", filter="pf", model_id=None, status="open", estimate=e,
+                       created_at=datetime(2026, 12, 1, 15, 4, 5, microsecond, tzinfo=UTC), last_seq=4,
+                       track_length=9)
+    got = json.loads(orjson.dumps(session_json(info), option=orjson.OPT_UTC_Z))
+    assert got == json.loads(session_out(info).model_dump_json())
