@@ -141,11 +141,11 @@ def test_pf_redraws_around_the_last_estimate_when_every_particle_would_die():
 def test_pf_particle_count_follows_the_spread_of_the_cloud():
     """KLD-sampling: a fix that collapses the cloud leaves fewer particles; a wide cloud keeps
     the maximum; the count stays within [min_particles, n_particles]."""
-    t = make_tracker("pf", [0, 0], np.eye(2) * 0.25, seed=3)
+    t = make_tracker("pf", [0, 0], np.eye(2) * 0.25, seed=3, min_particles=100)
     t.update(Fix(0.2, 0.0, 0, np.eye(2) * 0.05))
     tight = len(t.particles)
     assert t.params["min_particles"] <= tight < t.params["n_particles"]
-    wide = make_tracker("pf", [0, 0], np.eye(2) * 400.0, seed=3)
+    wide = make_tracker("pf", [0, 0], np.eye(2) * 400.0, seed=3, min_particles=100)
     wide.update(Fix(0.0, 0.0, 0, np.eye(2) * 300.0))
     wide._resample()
     assert len(wide.particles) == wide.params["n_particles"]
@@ -159,6 +159,9 @@ def test_pf_fixed_count_when_min_equals_max():
     t = make_tracker("pf-xy", [0, 0], np.eye(2), seed=3, n_particles=300, min_particles=300)
     t.update(Fix(1.0, 0.0, 0, np.eye(2) * 0.01))
     assert len(t.particles) == 300
+    default = make_tracker("pf", [0, 0], np.eye(2), seed=3)  # KLD-sampling is off by default
+    default.update(Fix(1.0, 0.0, 0, np.eye(2) * 0.01))
+    assert len(default.particles) == default.params["n_particles"] == 1000
 
 
 @pytest.mark.parametrize("name", ["pf", "pf-xy"])
