@@ -97,6 +97,26 @@ def live_server(database_url: str) -> Iterator[LiveServer]:
     server.stop()
 
 
+def scratch_database_url(tmp_path, name: str) -> str:
+    """A fresh empty database of its own: SQLite in ``tmp_path``, or a PostgreSQL database
+    ``<test database>_<name>`` beside the test one (emptied first)."""
+    url = os.environ.get("LOCALIZER_TEST_DATABASE_URL")
+    if not url:
+        return f"sqlite:///{tmp_path / f'{name}.db'}"
+    url = make_url(url).set(database=f"{make_url(url).database}_{name}").render_as_string(hide_password=False)
+    reset_postgres_database(url)
+    return url
+
+
+@pytest.fixture
+def own_db(tmp_path) -> str:
+    """A migrated database no other test and no live server uses (the shared live server's
+    embedded training worker claims queued models in the shared one)."""
+    url = scratch_database_url(tmp_path, "own")
+    migrate.upgrade(url)
+    return url
+
+
 @pytest.fixture
 def clean_db(database_url: str) -> Iterator[str]:
     """Empty every table after the test, so each API test starts from nothing."""

@@ -8,6 +8,7 @@ from sqlalchemy import create_engine, inspect
 
 from server import migrate
 from server.tables import Base
+from tests.conftest import scratch_database_url
 
 
 def test_migrated_schema_matches_the_orm(database_url):
@@ -133,22 +134,6 @@ def _rows(url: str, *tables: str) -> dict[str, list[tuple]]:
     return rows
 
 
-def _scratch_url(tmp_path, name: str) -> str:
-    """A fresh empty database: SQLite in tmp_path, or a PostgreSQL database beside the test one."""
-    import os
-
-    from sqlalchemy.engine import make_url
-
-    from tests.conftest import reset_postgres_database
-
-    url = os.environ.get("LOCALIZER_TEST_DATABASE_URL")
-    if not url:
-        return f"sqlite:///{tmp_path / f'{name}.db'}"
-    url = make_url(url).set(database=f"{make_url(url).database}_{name}").render_as_string(hide_password=False)
-    reset_postgres_database(url)
-    return url
-
-
 def test_buildings_migration_keeps_v1_rows_in_building_0(tmp_path):
     """0008 puts every existing floor, reference point, fingerprint, located transmitter and track
     estimate in building 0 (a transmitter without a floor keeps no building), after which a site may
@@ -156,7 +141,7 @@ def test_buildings_migration_keeps_v1_rows_in_building_0(tmp_path):
     import pytest
     from sqlalchemy.exc import IntegrityError
 
-    url = _scratch_url(tmp_path, "buildings")
+    url = scratch_database_url(tmp_path, "buildings")
     migrate.upgrade(url, "0007_models_autoincrement")
     engine = create_engine(url)
     with engine.begin() as conn:

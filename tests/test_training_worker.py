@@ -17,8 +17,8 @@ def queued_model(db: Database, name: str) -> int:
         return models.add_model(s, site.id, ModelSpec("knn", {})).id
 
 
-def test_a_job_is_claimed_once_and_a_stale_claim_is_taken_again(clean_db):
-    db = Database(clean_db)
+def test_a_job_is_claimed_once_and_a_stale_claim_is_taken_again(own_db):
+    db = Database(own_db)
     model_id = queued_model(db, "claims")
     now = datetime.now(UTC)
     with db.transaction() as s:
@@ -30,10 +30,10 @@ def test_a_job_is_claimed_once_and_a_stale_claim_is_taken_again(clean_db):
     db.dispose()
 
 
-def test_worker_marks_an_untrainable_job_failed_with_the_reason(clean_db):
-    db = Database(clean_db)
+def test_worker_marks_an_untrainable_job_failed_with_the_reason(own_db):
+    db = Database(own_db)
     model_id = queued_model(db, "empty site")
-    worker = TrainingWorker(clean_db)
+    worker = TrainingWorker(own_db)
     assert worker.run_pending() == 1
     with db.transaction() as s:
         model = models.training_job(s, model_id)
@@ -42,12 +42,12 @@ def test_worker_marks_an_untrainable_job_failed_with_the_reason(clean_db):
     db.dispose()
 
 
-def test_a_live_workers_job_is_never_claimed_again_however_long_it_trains(clean_db):
+def test_a_live_workers_job_is_never_claimed_again_however_long_it_trains(own_db):
     """The worker renews its claim while the child trains (a heartbeat every sixth of the stale
     time), so another worker never starts a second copy of a job whose worker is alive."""
-    db = Database(clean_db)
+    db = Database(own_db)
     model_id = queued_model(db, "heartbeat")
-    worker = TrainingWorker(clean_db, poll_s=0.05, stale_after_s=0.6).start()
+    worker = TrainingWorker(own_db, poll_s=0.05, stale_after_s=0.6).start()
     checks_while_training = 0
     deadline = time.monotonic() + 60
     try:
