@@ -3,18 +3,28 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 
 import pytest
 from sqlalchemy import update
 from sqlalchemy.exc import IntegrityError
 
+from server.db import Database
 from server.domain import Artifact, ModelSpec, NewSite, ServingCandidate, ServingModel
 from server.store import models, sites
 from server.tables import Model
 
 KNN = ModelSpec("knn", {"k": 3}, use_heading=True, kinds=("ble", "wifi"), include_crowd=False)
 STALE = timedelta(minutes=30)
+
+
+@pytest.fixture
+def db(own_db: str) -> Iterator[Database]:
+    """A database of its own: the shared live server's training worker would claim these jobs."""
+    database = Database(own_db)
+    yield database
+    database.dispose()
 
 
 def ready_model(db, site_id: int, blob: bytes = b"model", sha256: str = "f" * 64) -> int:
