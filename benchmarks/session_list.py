@@ -15,24 +15,12 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
-import time
 from pathlib import Path
-
-import httpx
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from client_sim.server_process import start_server, stop_server  # noqa: E402
-
-ADMIN, DEVICE = "bench-admin", "bench-device"
-
-
-def timed(http: httpx.Client, url: str) -> tuple[float, httpx.Response]:
-    t0 = time.perf_counter()
-    r = http.get(url)
-    return time.perf_counter() - t0, r
+from benchmarks.bench_site import bench_site, open_session, timed_get  # noqa: E402
 
 
 def main() -> None:
@@ -43,34 +31,21 @@ def main() -> None:
     ap.add_argument("--database-url", default=None, help="default: SQLite in a temporary folder")
     ap.add_argument("--port", type=int, default=8794)
     a = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        url = a.database_url or f"sqlite:///{tmp}/bench.db"
-        server = start_server(a.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": ADMIN,
-                                       "LOCALIZER_DEVICE_KEYS": DEVICE})
-        base = f"http://127.0.0.1:{a.port}"
-        try:
-            with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=120) as admin, \
-                    httpx.Client(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, timeout=120) as dev:
-                site = admin.post("/api/v1/sites", json={"name": f"list-{time.time_ns()}",
-                                                         "floors": [{"level": 0}]}).json()
-                steps = [{"t": 0.5 * i, "length_m": 0.7, "heading_deg": 90.0} for i in range(4)]
-                for _ in range(a.sessions):
-                    opened = dev.post("/api/v1/sessions", json={"site_id": site["id"], "filter": a.filter,
-                                                                "initial": {"x": 0.0, "y": 0.0, "floor": 0}})
-                    opened.raise_for_status()
-                    dev.post(f"/api/v1/sessions/{opened.json()['id']}/batches",
-                             json={"seq": 0, "steps": steps}).raise_for_status()
-                health, own, every = [], [], []
-                for _ in range(a.repeat):
-                    health += [timed(dev, "/healthz")[0] for _ in range(20)]
-                    dt, r = timed(dev, f"/api/v1/sessions?limit={a.sessions}")
-                    assert len(r.json()) == a.sessions
-                    own.append(dt)
-                    dt, r = timed(admin, f"/api/v1/sessions?limit={a.sessions}")
-                    assert len(r.json()) >= a.sessions
-                    every.append(dt)
-        finally:
-            stop_server(server)
+    with bench_site(a.port, a.database_url, "list") as site:
+        admin, dev = site.admin, site.device
+        steps = [{"t": 0.5 * i, "length_m": 0.7, "heading_deg": 90.0} for i in range(4)]
+        for _ in range(a.sessions):
+            sid = open_session(site, a.filter)
+            dev.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "steps": steps}).raise_for_status()
+        health, own, every = [], [], []
+        for _ in range(a.repeat):
+            health += [timed_get(dev, "/healthz")[0] for _ in range(20)]
+            dt, r = timed_get(dev, f"/api/v1/sessions?limit={a.sessions}")
+            assert len(r.json()) == a.sessions
+            own.append(dt)
+            dt, r = timed_get(admin, f"/api/v1/sessions?limit={a.sessions}")
+            assert len(r.json()) >= a.sessions
+            every.append(dt)
     h = statistics.median(health) * 1e3
     o, e = statistics.median(own) * 1e3, statistics.median(every) * 1e3
     print(f"{a.sessions} {a.filter} sessions, {'SQLite' if a.database_url is None else a.database_url}, "

@@ -15,18 +15,12 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
-import time
 from pathlib import Path
-
-import httpx
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from client_sim.server_process import start_server, stop_server  # noqa: E402
-
-ADMIN, DEVICE = "bench-admin", "bench-device"
+from benchmarks.bench_site import bench_site, open_session, timed_get  # noqa: E402
 
 
 def fill(database_url: str, session_id: str, n: int, per_batch: int = 20) -> None:
@@ -55,12 +49,6 @@ def fill(database_url: str, session_id: str, n: int, per_batch: int = 20) -> Non
     db.dispose()
 
 
-def timed_get(http: httpx.Client, url: str) -> tuple[float, httpx.Response]:
-    t0 = time.perf_counter()
-    r = http.get(url)
-    return time.perf_counter() - t0, r
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--estimates", type=int, default=30_000)
@@ -69,39 +57,26 @@ def main() -> None:
     ap.add_argument("--database-url", default=None, help="default: SQLite in a temporary folder")
     ap.add_argument("--port", type=int, default=8793)
     a = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        url = a.database_url or f"sqlite:///{tmp}/bench.db"
-        server = start_server(a.port, {"LOCALIZER_DATABASE_URL": url, "LOCALIZER_ADMIN_KEYS": ADMIN,
-                                       "LOCALIZER_DEVICE_KEYS": DEVICE})
-        base = f"http://127.0.0.1:{a.port}"
-        try:
-            with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=120) as admin, \
-                    httpx.Client(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, timeout=120) as dev:
-                site = admin.post("/api/v1/sites", json={"name": f"pages-{time.time_ns()}",
-                                                         "floors": [{"level": 0}]}).json()
-                opened = dev.post("/api/v1/sessions", json={"site_id": site["id"], "filter": "skpf",
-                                                            "initial": {"x": 0.0, "y": 0.0, "floor": 0}})
-                opened.raise_for_status()
-                sid = opened.json()["id"]
-                fill(url, sid, a.estimates)
-                health, pages, whole, n_pages = [], [], [], 0
-                for _ in range(a.repeat):
-                    health += [timed_get(dev, "/healthz")[0] for _ in range(50)]
-                    nxt: str | None = f"/api/v1/sessions/{sid}/track?limit={a.page}"
-                    got, n_pages = 0, 0
-                    while nxt:
-                        dt, r = timed_get(dev, nxt)
-                        r.raise_for_status()
-                        pages.append(dt)
-                        got += len(r.json())
-                        n_pages += 1
-                        nxt = r.links.get("next", {}).get("url")
-                    assert got == a.estimates + 1, got  # + the initial position
-                    dt, r = timed_get(dev, f"/api/v1/sessions/{sid}/track")
-                    whole.append(dt)
-                    assert len(r.json()) == got
-        finally:
-            stop_server(server)
+    with bench_site(a.port, a.database_url, "pages") as site:
+        sid = open_session(site, "skpf")
+        fill(site.database_url, sid, a.estimates)
+        dev = site.device
+        health, pages, whole, n_pages = [], [], [], 0
+        for _ in range(a.repeat):
+            health += [timed_get(dev, "/healthz")[0] for _ in range(50)]
+            nxt: str | None = f"/api/v1/sessions/{sid}/track?limit={a.page}"
+            got, n_pages = 0, 0
+            while nxt:
+                dt, r = timed_get(dev, nxt)
+                r.raise_for_status()
+                pages.append(dt)
+                got += len(r.json())
+                n_pages += 1
+                nxt = r.links.get("next", {}).get("url")
+            assert got == a.estimates + 1, got  # + the initial position
+            dt, r = timed_get(dev, f"/api/v1/sessions/{sid}/track")
+            whole.append(dt)
+            assert len(r.json()) == got
     h = statistics.median(health) * 1e3
     p50, worst = statistics.median(pages) * 1e3, max(pages) * 1e3
     w = statistics.median(whole) * 1e3
