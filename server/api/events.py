@@ -22,7 +22,7 @@ from sse_starlette import EventSourceResponse, ServerSentEvent
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import Admin, Device, Sessions
-from server.api.sessions import estimate_out
+from server.api.sessions import estimate_json
 from server.auth import Principal
 from server.errors import NotFound
 from server.estimation.types import Estimate
@@ -49,7 +49,7 @@ def _json(value: dict[str, Any]) -> str:
 
 
 def _estimate_data(idx: int, e: Estimate, refused: bool, session_id: str | None = None) -> str:
-    data = estimate_out(e).model_dump(mode="json")
+    data = estimate_json(e)
     data["idx"] = idx
     if refused:  # as on the track: present (true) only on a scan whose fix the gate refused
         data["fix_refused"] = True
