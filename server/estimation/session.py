@@ -28,7 +28,6 @@ from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
-    ParticleFilterXYTracker,
     apply_snap,
     make_tracker,
     tracker_from_dict,
@@ -201,8 +200,7 @@ class SessionEstimator:
         if walls is not self._plan_walls:
             self.tracker.set_walls(walls)
             self._plan_walls = walls
-        if isinstance(self.tracker, ParticleFilterXYTracker):
-            self.tracker.set_walkable(site.walkable.get((building, level)))
+        self.tracker.set_walkable(site.walkable.get((building, level)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint
@@ -235,6 +233,7 @@ class SessionEstimator:
         if self.tracker is None:
             return None
         self.tracker.predict(step)
+        self.tracker.keep_walkable()
         return self._record(step.t, "step")
 
     def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:
@@ -268,6 +267,7 @@ class SessionEstimator:
         }
         for snap in self.landmarks.observe(scan.rss)[:1]:
             apply_snap(self.tracker, snap)
+        self.tracker.keep_walkable()
         return self._record(scan.t, "scan"), refused
 
     def _update(self, fix: Fix) -> str | None:

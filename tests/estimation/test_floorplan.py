@@ -122,3 +122,32 @@ def test_bad_transforms_and_too_big_plans_are_refused(monkeypatch):
     monkeypatch.setattr("server.estimation.floorplan.MAX_VERTICES", 5)
     with pytest.raises(PlanError, match="10 vertices, more than 5"):
         read_plan(plan_geojson(), bbox_size=(W, H))
+
+
+def test_truncating_a_gaussian_to_a_half_plane_matches_sampling():
+    """Mean and covariance of N(x, P) restricted to nᵀx[:2] ≥ c, against the same restriction of
+    400,000 samples (the constraint cuts through the middle of the mass)."""
+    from server.estimation.tracking.geometry import truncate_halfplane
+
+    rng = np.random.default_rng(0)
+    x = np.array([1.0, 2.0, 0.1, 1.0])
+    A = rng.normal(size=(4, 4))
+    P = A @ A.T + np.eye(4) * 0.2
+    n = np.array([0.6, 0.8])
+    c = float(n @ x[:2]) + 0.5
+    xs = rng.multivariate_normal(x, P, size=400_000)
+    kept = xs[xs[:, :2] @ n >= c]
+    new_x, new_P = truncate_halfplane(x, P, n, c)
+    assert np.allclose(new_x, kept.mean(axis=0), atol=0.02)
+    assert np.allclose(new_P, np.cov(kept.T), atol=0.05 * np.abs(P).max())
+    assert float(n @ new_x[:2]) > c
+
+
+def test_truncating_far_in_the_tail_stays_finite_and_lands_inside():
+    from server.estimation.tracking.geometry import truncate_halfplane
+
+    x, P = np.zeros(2), np.eye(2) * 0.01
+    new_x, new_P = truncate_halfplane(x, P, np.array([1.0, 0.0]), 5.0)  # 50 σ away
+    assert np.all(np.isfinite(new_x)) and np.all(np.isfinite(new_P))
+    assert 5.0 <= new_x[0] < 5.05
+    assert 0.0 < new_P[0, 0] < 1e-4 and new_P[1, 1] == pytest.approx(0.01)

@@ -1,5 +1,6 @@
-"""The walkable area reaches a session's PF through ``SiteMap.walkable`` (no walls given): a walk
-whose PDR heading drifts into a closed room ends in the corridor, every estimate outside the room."""
+"""The walkable area reaches a session's tracker through ``SiteMap.walkable`` (no walls given): a
+walk whose PDR heading drifts into a closed room ends in the corridor, every estimate outside the
+room; the PF kills particles, the self-calibrating Gaussian filters truncate their Gaussian."""
 
 import numpy as np
 import pytest
@@ -25,7 +26,7 @@ def in_room(x, y):
     return 10 < x < 30 and y > 5
 
 
-@pytest.mark.parametrize("name", ["pf", "pf-xy"])
+@pytest.mark.parametrize("name", ["pf", "pf-xy", "ekf", "ukf", "skpf"])
 def test_a_session_pf_never_ends_in_the_room_it_cannot_reach(name):
     plan = read_plan(PLAN, Transform(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))))
     assert plan.walkable is not None
@@ -43,3 +44,18 @@ def test_a_session_pf_never_ends_in_the_room_it_cannot_reach(name):
             assert not any(in_room(e.x, e.y) for e in track)
     assert in_room(ends["free"].x, ends["free"].y)  # without the plan the walk does end in the room
     assert ends["plan"].x > 20.0
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf", "skpf"])
+def test_being_pushed_back_from_the_room_teaches_the_heading_bias(name):
+    """The walker heads 14° left of east along the room's wall: each truncation moves the state's
+    heading bias towards east with the position (through their correlation)."""
+    plan = read_plan(PLAN, Transform(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))))
+    assert plan.walkable is not None
+    site = SiteMap(walkable={(0, 0): Walkable(plan.walkable)})
+    est = SessionEstimator(name, seed=3)
+    est.start([10.5, 2.0], np.eye(2) * 0.05, 0, [], None, "init")
+    walk = [Step(0.5 * k, 0.7, 90.0 - 14.0, length_std_m=0.1, heading_std_deg=3.0) for k in range(40)]
+    est.apply_batch(walk, [], NoFixes(), site)
+    assert est.tracker is not None
+    assert est.tracker.heading_bias_deg > 2.0  # learned from the walls alone: no fix in this walk

@@ -192,6 +192,10 @@ class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
     def inflate(self, factor: float) -> None:
         self.ekf.P = self.state_covariance * float(factor)
 
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
+        self.ekf.x, self.ekf.P = x, P
+        self._tidy()
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
                 "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}

@@ -1,11 +1,15 @@
-"""Wall geometry: segment crossing tests and the wall-side constraint.
+"""Wall geometry: segment crossing tests, the wall-side constraint, and a Gaussian
+truncated to a half-plane (how the Kalman-family trackers keep to walkable space).
 
 Walls are line segments [x1, y1, x2, y2] in site metres (one list per floor).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from scipy.special import erfcx
 
 _EPS = 1e-12
 
@@ -81,3 +85,29 @@ def enforce_side(point, wall, side: float, margin_m: float = 0.05) -> tuple[np.n
     foot = a + float((p - a) @ d) / length2 * d
     normal = np.array([-d[1], d[0]]) / np.sqrt(length2)  # points to the left
     return foot + side * margin_m * normal, True
+
+
+def truncate_halfplane(x: np.ndarray, P: np.ndarray, normal, c: float) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussian N(x, P) conditioned on nᵀx[:2] ≥ c, moment-matched (PDF truncation,
+    Simon & Simon 2010): the 1-D marginal u = nᵀx[:2] ~ N(μ, σ²) is truncated to u ≥ c, and
+    its new mean and variance are spread over the whole state through P's correlations, so a
+    walker pushed back from a wall also teaches the states that drove it there (heading bias,
+    step scale). ``normal`` must be a unit vector."""
+    n = np.asarray(normal, float).reshape(2)
+    h = np.zeros(len(x))
+    h[:2] = n
+    Ph = P @ h
+    var = float(h @ Ph)
+    if not var > 0.0:
+        return x.copy(), P.copy()
+    sd = math.sqrt(var)
+    mu = float(h @ x)
+    alpha = (c - mu) / sd
+    # λ = φ(α)/(1 − Φ(α)), written with erfcx so it stays finite far into the tail
+    lam = math.sqrt(2.0 / math.pi) / float(erfcx(alpha / math.sqrt(2.0)))
+    new_mu = mu + sd * lam
+    new_var = var * max(1.0 + alpha * lam - lam * lam, 1e-9)
+    k = Ph / var
+    x_new = x + k * (new_mu - mu)
+    P_new = P - np.outer(k, k) * (var - new_var)
+    return x_new, 0.5 * (P_new + P_new.T)

@@ -25,9 +25,11 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
+from server.estimation.tracking.geometry import truncate_halfplane
 from server.estimation.types import Step
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
@@ -142,6 +144,35 @@ class Calibrating:
     @property
     def state_mean(self) -> np.ndarray:  # pragma: no cover - overridden
         raise NotImplementedError
+
+    walkable: Any  # set by Tracker
+
+    @property
+    def state_covariance(self) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def keep_walkable(self) -> bool:
+        """A mean outside the walkable area: the Gaussian truncated to the half-plane
+        beyond the area's nearest boundary point (``truncate_halfplane``), so the position
+        comes back inside and the heading bias and step scale that drove it out are corrected
+        with it."""
+        if self.walkable is None:
+            return False
+        x = self.state_mean
+        if self.walkable.contains(x[:2])[0]:
+            return False
+        target = self.walkable.nearest(x[:2])
+        gap = target - x[:2]
+        dist = float(np.hypot(*gap))
+        if dist < 1e-9:
+            return False
+        n = gap / dist
+        new_x, new_P = truncate_halfplane(x, self.state_covariance, n, float(n @ target))
+        self._set_state(new_x, new_P)
+        return True
 
     @property
     def heading_bias_deg(self) -> float:

@@ -335,6 +335,9 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
     def inflate(self, factor: float) -> None:
         self.P = self.P * float(factor)
 
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
+        self.x, self.P = selfcal.clamp(x), selfcal.symmetric(P)
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
                 "x": self.x.tolist(), "P": self.P.tolist()}

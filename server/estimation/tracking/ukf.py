@@ -214,6 +214,9 @@ class UKFTracker(_UKFUpdates, selfcal.Calibrating, Tracker):
     def inflate(self, factor: float) -> None:
         self._set(self.ukf.x, self.ukf.P * float(factor))
 
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
+        self._set(x, P)
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
                 "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
