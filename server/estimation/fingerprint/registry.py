@@ -7,6 +7,7 @@ from .kde import KDEModel
 from .knn import KNNModel
 from .nbc import NBCModel
 from .propagation import PropagationModel
+from .radiomap import RadioMapModel
 from .svm import SVMModel
 from .tkbe import TKBEModel
 from .wknn import WKNNModel
@@ -19,6 +20,7 @@ ALGORITHMS: dict[str, type[FingerprintModel]] = {
     "tkbe": TKBEModel,
     "propagation": PropagationModel,
     "wknn": WKNNModel,
+    "rmap": RadioMapModel,
 }
 
 

@@ -1,0 +1,293 @@
+"""Interpolated radio map ("rmap"): fixes between survey points, for sparse surveys.
+
+A fingerprint model over the surveyed points can only answer a surveyed point (or a
+weighted mean of a few): on a floor walked along a handful of lines, a scan taken
+between them is pulled onto the nearest line. This model first turns the survey into
+a radio map on a grid and matches scans against the grid's cells instead:
+
+1. **Map.** Per (building, floor), each transmitter's encoded RSS (features.py; "not
+   heard" is 0, so the map holds how strongly *and how often* a transmitter is heard)
+   is a Nadaraya–Watson kernel regression over the floor of the survey's reference
+   points (Gaussian kernel of length scale ``length_scale_m``, each point weighted by
+   its number of scans), evaluated at the cells of a ``grid_m`` grid that lie within
+   ``reach_m`` of a surveyed point (no extrapolation into unsurveyed wings). The
+   kernel weights are sparse (cut at 3 length scales), so the map is one sparse
+   matrix product.
+2. **Query.** The ``k`` nearest cells of the chosen floor in feature space (Sørensen
+   distance, as wknn's) vote with weights 1/d: the posterior over cells, reduced to a
+   fix and covariance as for every model (posterior.py). The floor comes from the
+   base class's floor classifier.
+3. **Choices.** ``length_scale_m`` and ``k`` (when None) are chosen by an internal
+   cross-validation that holds out whole survey walks (devices, when there are at least
+   3), else whole reference points, and locates their scans against a map built
+   without them — the situation of a scan taken where nobody surveyed. The fix
+   covariance is calibrated on the same held-out fixes (calibration.py); the server's
+   training step refits the calibration on its own held-out sample.
+
+Meant for sparse surveys (walks, a few points per room): on a dense survey (one point
+every metre or two) the grid adds nothing over wknn and costs memory. Walking heading
+is not used (the map has none). The artifact stores the survey's reference points,
+not the grid: the grid is rebuilt, identically, when the model is loaded.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from .base import FingerprintModel, TrainingData
+from .calibration import fit_calibration
+from .dataset import ReferencePoints, rp_display_label
+from .posterior import reduce_posterior
+
+CV_FOLDS = 5
+#: kernel weights beyond this many length scales are dropped (e^-4.5 ≈ 1 %)
+KERNEL_CUT = 3.0
+
+
+def _grid_cells(xy: np.ndarray, grid_m: float, reach_m: float) -> np.ndarray:
+    """(c, 2) centres of the ``grid_m`` cells within ``reach_m`` of some point of ``xy``."""
+    lo = np.floor((xy.min(axis=0) - reach_m) / grid_m) * grid_m
+    hi = xy.max(axis=0) + reach_m
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, grid_m), np.arange(lo[1], hi[1] + 1e-9, grid_m))
+    cells = np.column_stack([gx.ravel(), gy.ravel()])
+    d, _ = cKDTree(xy).query(cells, distance_upper_bound=reach_m + 1e-9)
+    return cells[np.isfinite(d)]
+
+
+def _kernel_map(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, F: sparse.csr_matrix,
+                length_scale_m: float) -> np.ndarray:
+    """(c, m) float32: the kernel regression at ``cells`` of the points ``xy`` (weights
+    ``weight``, encoded fingerprints ``F`` (p, m)). Both factors are sparse (a cut
+    kernel; a scan hears a few of the site's transmitters), so the product is too. A
+    cell beyond the cut from every point takes its nearest point's fingerprint."""
+    points = cKDTree(xy)
+    D = cKDTree(cells).sparse_distance_matrix(points, KERNEL_CUT * length_scale_m, output_type="coo_matrix")
+    W = sparse.csr_matrix((np.exp(-0.5 * (D.data / length_scale_m) ** 2) * weight[D.col], (D.row, D.col)),
+                          shape=(len(cells), len(xy)))
+    lonely = np.flatnonzero(np.diff(W.indptr) == 0)
+    if len(lonely):
+        W = W + sparse.csr_matrix((np.ones(len(lonely)), (lonely, points.query(cells[lonely])[1])), shape=W.shape)
+    W = sparse.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W
+    return np.asarray((W @ F).toarray(), dtype=np.float32)
+
+
+class RadioMapModel(FingerprintModel):
+    """length_scale_m: the kernel's length scale (m; None = chosen by cross-validation
+    among ``length_grid``); grid_m: cell spacing (m); reach_m: cells farther than this
+    from every surveyed point are left out; k: cells voting for the position (None =
+    chosen among ``k_grid``); calibrate: fit ``calibration_`` on the cross-validation's
+    held-out fixes; cv_rows: held-out scans the cross-validation locates at most."""
+
+    name = "rmap"
+
+    def __init__(self, length_scale_m: float | None = None, length_grid: tuple[float, ...] = (3.0, 4.0, 6.0, 8.0, 12.0),
+                 grid_m: float = 2.0, reach_m: float = 6.0, k: int | None = None,
+                 k_grid: tuple[int, ...] = (3, 5, 9, 15, 25), calibrate: bool = True, cv_rows: int = 1500,
+                 missing: str = "powed", **common):
+        super().__init__(missing=missing, **common)
+        if self.use_heading:
+            raise ValueError("rmap does not use the heading (its map has none)")
+        self.length_scale_m = None if length_scale_m is None else float(length_scale_m)
+        self.length_grid = tuple(float(v) for v in length_grid)
+        self.grid_m = float(grid_m)
+        self.reach_m = float(reach_m)
+        self.k = None if k is None else int(k)
+        self.k_grid = tuple(int(v) for v in k_grid)
+        self.calibrate = bool(calibrate)
+        self.cv_rows = int(cv_rows)
+        scales = self.length_grid + (() if self.length_scale_m is None else (self.length_scale_m,))
+        if not scales or min(scales) <= 0:
+            raise ValueError("length scales must be positive (and length_grid not empty)")
+        if self.grid_m <= 0 or self.reach_m < 0:
+            raise ValueError("grid_m must be positive and reach_m not negative")
+        ks = self.k_grid + (() if self.k is None else (self.k,))
+        if not ks or min(ks) < 1:
+            raise ValueError("k must be at least 1 (and k_grid not empty)")
+        if self.cv_rows < CV_FOLDS:
+            raise ValueError(f"cv_rows must be at least {CV_FOLDS}")
+
+    # ---- state: the artifact keeps the survey, the grid is rebuilt ----------------------
+    def __getstate__(self) -> dict:
+        state = dict(vars(self))
+        for name in ("GT_", "g_sum_"):
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        vars(self).update(state)
+        if hasattr(self, "survey_F_"):
+            self._build_map()
+
+    # ---- fit -----------------------------------------------------------------------------
+    def _fit(self, X, H, data: TrainingData) -> None:
+        rp = data.rp
+        F, weight = self._rp_means(X, rp.row_rp, len(rp))
+        self.survey_xy_ = rp.xy
+        self.survey_group_ = self.rp_group_.copy()
+        self.survey_weight_ = weight
+        self.survey_F_ = F
+        self.length_scale_m_ = self.length_scale_m if self.length_scale_m is not None else 4.0
+        self.k_ = self.k if self.k is not None else 5
+        if self.length_scale_m is None or self.k is None or self.calibrate:
+            self._cross_validate(X, data)
+        self._build_map()
+
+    @staticmethod
+    def _rp_means(X: np.ndarray, row_rp: np.ndarray, n_rp: int) -> tuple[sparse.csr_matrix, np.ndarray]:
+        """Each reference point's mean encoded fingerprint (sparse (n_rp, m)) and scan count."""
+        counts = np.bincount(row_rp, minlength=n_rp).astype(float)
+        A = sparse.csr_matrix((1.0 / counts[row_rp], (row_rp, np.arange(len(row_rp)))), shape=(n_rp, len(row_rp)))
+        return sparse.csr_matrix(A @ sparse.csr_matrix(np.asarray(X, dtype=np.float64))), counts
+
+    def _cells(self, xy: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cells, cell_group = [], []
+        for g in range(len(self.group_floor_)):
+            on = group == g
+            if on.any():
+                c = _grid_cells(xy[on], self.grid_m, self.reach_m)
+                cells.append(c)
+                cell_group.append(np.full(len(c), g))
+        return np.concatenate(cells), np.concatenate(cell_group)
+
+    def _map(self, cells, cell_group, xy, group, weight, F, length_scale_m) -> np.ndarray:
+        """(m, c) float32 map at ``cells`` from the points (xy, group, weight, F)."""
+        GT = np.zeros((F.shape[1], len(cells)), dtype=np.float32)
+        for g in np.unique(cell_group):
+            on, at = np.flatnonzero(group == g), np.flatnonzero(cell_group == g)
+            GT[:, at] = _kernel_map(cells[at], xy[on], weight[on], F[on], length_scale_m).T
+        return GT
+
+    def _build_map(self) -> None:
+        """The grid cells become the model's reference points; ``GT_`` is their map."""
+        cells, cell_group = self._cells(self.survey_xy_, self.survey_group_)
+        self.GT_ = self._map(cells, cell_group, self.survey_xy_, self.survey_group_, self.survey_weight_,
+                             self.survey_F_, self.length_scale_m_)
+        self.g_sum_ = self.GT_.sum(axis=0, dtype=np.float64)
+        self.rp_xy_ = cells
+        self.rp_group_ = cell_group
+        b, f = self.group_building_[cell_group], self.group_floor_[cell_group]
+        keys = [(int(bb), int(ff), "P", round(float(x), 3), round(float(y), 3))
+                for bb, ff, (x, y) in zip(b, f, cells, strict=True)]
+        self.rp_ = ReferencePoints(keys=keys, labels=[rp_display_label(k) for k in keys], x=cells[:, 0].copy(),
+                                   y=cells[:, 1].copy(), floor=f, building=b, row_rp=np.zeros(0, dtype=int))
+        self.rp_key_index_ = {k: i for i, k in enumerate(keys)}
+
+    def reuse_choices(self, validated: FingerprintModel) -> None:
+        """Take the length scale and k ``validated`` chose; calibration is the training step's."""
+        if isinstance(validated, RadioMapModel):
+            self.length_scale_m = validated.length_scale_m_
+            self.k = validated.k_
+            self.calibrate = False
+
+    def _cross_validate(self, X: np.ndarray, data: TrainingData) -> None:
+        """Held-out walks (devices) or reference points, ``CV_FOLDS`` folds, the floor taken
+        as known: ``length_scale_m_`` and ``k_`` with the lowest mean error, and (when
+        ``calibrate``) ``calibration_`` on their held-out fixes."""
+        rng = np.random.default_rng(0)
+        fs, row_rp = data.fs, data.rp.row_rp
+        devices = None if fs.device is None else fs.device.astype(str)
+        if devices is not None and len(set(devices)) >= 3:
+            names = rng.permutation(np.unique(devices))
+            fold_of = {d: i % CV_FOLDS for i, d in enumerate(names)}
+            fold = np.array([fold_of[d] for d in devices])
+        else:
+            fold = (rng.permutation(len(data.rp)) % CV_FOLDS)[row_rp]
+        scales = self.length_grid if self.length_scale_m is None else (self.length_scale_m,)
+        ks = self.k_grid if self.k is None else (self.k,)
+        xy_rows = np.column_stack([fs.x, fs.y])
+        errs = np.zeros((len(scales), len(ks)))
+        res: dict[tuple[int, int], list[np.ndarray]] = {}
+        covs: dict[tuple[int, int], list[np.ndarray]] = {}
+        per_fold = max(1, self.cv_rows // CV_FOLDS)
+        count = 0
+        for f in range(CV_FOLDS):
+            te, tr = np.flatnonzero(fold == f), np.flatnonzero(fold != f)
+            if not len(te) or not len(tr):
+                continue
+            if len(te) > per_fold:
+                te = np.sort(rng.choice(te, per_fold, replace=False))
+            rps = np.unique(row_rp[tr])
+            remap = np.full(len(data.rp), -1)
+            remap[rps] = np.arange(len(rps))
+            F, weight = self._rp_means(X[tr], remap[row_rp[tr]], len(rps))
+            xy, group = data.rp.xy[rps], self.survey_group_[rps]
+            te = te[np.isin(data.row_group[te], group)]  # a floor with no map left says nothing
+            if not len(te):
+                continue
+            cells, cell_group = self._cells(xy, group)
+            count += len(te)
+            for i, scale in enumerate(scales):
+                GT = self._map(cells, cell_group, xy, group, weight, F, scale)
+                D = self._distances(X[te], GT, GT.sum(axis=0, dtype=np.float64))
+                D[cell_group[None, :] != data.row_group[te][:, None]] = np.inf
+                for j, k in enumerate(ks):
+                    with np.errstate(divide="ignore"):
+                        pred = self._reduce_over(np.log(self._scores(D, k)), cells, cell_group)
+                    r = pred.xy - xy_rows[te]
+                    errs[i, j] += np.hypot(r[:, 0], r[:, 1]).sum()
+                    res.setdefault((i, j), []).append(r)
+                    covs.setdefault((i, j), []).append(pred.covariance)
+        if not res:
+            return
+        flat = int(np.argmin(errs))
+        best = (flat // len(ks), flat % len(ks))
+        self.length_scale_m_, self.k_ = float(scales[best[0]]), int(ks[best[1]])
+        self.cv_errors_ = (errs / count).round(3).tolist()  # mean error (m) per (length scale, k)
+        if self.calibrate:
+            self.calibration_ = fit_calibration(np.concatenate(res[best]), np.concatenate(covs[best]))
+
+    # ---- queries -------------------------------------------------------------------------
+    @staticmethod
+    def _distances(Q: np.ndarray, GT: np.ndarray, g_sum: np.ndarray) -> np.ndarray:
+        """(nq, c) Sørensen distances ``Σ|q−g| / Σ(q+g)`` from encoded queries to the cells,
+        with ``Σ|q−g| = Σq + Σg − 2·Σ_{j heard by q} min(q_j, g_j)`` (one gather of the
+        query's heard transmitters)."""
+        Q = np.asarray(Q, dtype=np.float32)
+        out = np.empty((len(Q), GT.shape[1]))
+        for i, q in enumerate(Q):
+            cols = np.flatnonzero(q > 0)
+            qv = q[cols]
+            inter = np.minimum(GT[cols], qv[:, None]).sum(axis=0, dtype=np.float64)
+            tot = float(qv.sum(dtype=np.float64)) + g_sum
+            out[i] = (tot - 2.0 * inter) / np.maximum(tot, 1e-9)
+        return out
+
+    @staticmethod
+    def _scores(D: np.ndarray, k: int) -> np.ndarray:
+        """(nq, c) weights 1/d of each query's k nearest cells, 0 elsewhere."""
+        n, c = D.shape
+        k = max(1, min(k, c))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < c else np.tile(np.arange(c), (n, 1))
+        d = np.take_along_axis(D, idx, axis=1)
+        scores = np.zeros((n, c))
+        np.put_along_axis(scores, idx, np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0), axis=1)
+        return scores
+
+    def _reduce_over(self, logs: np.ndarray, cells: np.ndarray, cell_group: np.ndarray):
+        """`reduce_posterior` over only the cells some query gives weight to (at most k per
+        query of thousands), indices mapped back; candidates padded with (-1, 0)."""
+        cols = np.flatnonzero(np.isfinite(logs).any(axis=0))
+        if not len(cols):
+            cols = np.arange(logs.shape[1])
+        pred = reduce_posterior(logs[:, cols], cells[cols], cell_group[cols], self.group_floor_,
+                                self.group_building_, self.cov_floor_m_, self.n_candidates)
+        pred.best_rp = cols[pred.best_rp]
+        top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
+        pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
+        if pad > 0:
+            top = np.pad(top, ((0, 0), (0, pad)), constant_values=-1)
+            pred.top_p = np.pad(pred.top_p, ((0, 0), (0, pad)))
+        pred.top_rp = top
+        return pred
+
+    def _reduce(self, logs: np.ndarray):
+        return self._reduce_over(logs, self.rp_xy_, self.rp_group_)
+
+    def _log_scores(self, Q, Hq, mask):
+        D = self._distances(Q, self.GT_, self.g_sum_)
+        if mask is not None:
+            D = np.where(mask, D, np.inf)
+        with np.errstate(divide="ignore"):
+            return np.log(self._scores(D, self.k_))
