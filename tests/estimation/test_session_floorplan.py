@@ -59,3 +59,18 @@ def test_being_pushed_back_from_the_room_teaches_the_heading_bias(name):
     est.apply_batch(walk, [], NoFixes(), site)
     assert est.tracker is not None
     assert est.tracker.heading_bias_deg > 2.0  # learned from the walls alone: no fix in this walk
+
+
+@pytest.mark.parametrize("name", ["pf", "pf-xy", "ekf-xy", "kf"])
+def test_particle_and_seed_filters_leave_their_mean_where_it_is(name):
+    """The PF keeps to the plan particle by particle (its mean may fall between them, in an
+    obstacle); the seed forms do not use the plan. Neither moves a mean outside the area."""
+    from server.estimation.tracking import make_tracker
+
+    plan = read_plan(PLAN, Transform(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))))
+    assert plan.walkable is not None
+    tracker = make_tracker(name, [20.0, 8.0], np.eye(2) * 0.05, seed=1)
+    tracker.set_walkable(Walkable(plan.walkable))
+    before = tracker.mean
+    assert tracker.keep_walkable() is False
+    assert np.allclose(tracker.mean, before)

@@ -124,7 +124,7 @@ class EKFXYTracker(_EKFUpdates, Tracker):
 
 
 @register
-class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
+class EKFTracker(_EKFUpdates, selfcal.GaussianCalibrating, Tracker):
     """Self-calibrating EKF, state [x, y, b, s] (heading bias in radians, step scale).
 
     Prediction: x⁻ = f(x, d, h), P⁻ = F P Fᵀ + G diag(σd², σh²) Gᵀ + diag(q, q, σb², σs²)

@@ -145,6 +145,19 @@ class Calibrating:
     def state_mean(self) -> np.ndarray:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    @property
+    def heading_bias_deg(self) -> float:
+        return math.degrees(float(self.state_mean[2]))
+
+    @property
+    def step_scale(self) -> float:
+        return float(self.state_mean[3])
+
+
+class GaussianCalibrating(Calibrating):
+    """Mixin of the augmented Kalman-family trackers (ekf, ukf, skpf): one Gaussian over
+    [x, y, b, s], kept to the floor's walkable area by truncation."""
+
     walkable: Any  # set by Tracker
 
     @property
@@ -173,11 +186,3 @@ class Calibrating:
         new_x, new_P = truncate_halfplane(x, self.state_covariance, n, float(n @ target))
         self._set_state(new_x, new_P)
         return True
-
-    @property
-    def heading_bias_deg(self) -> float:
-        return math.degrees(float(self.state_mean[2]))
-
-    @property
-    def step_scale(self) -> float:
-        return float(self.state_mean[3])

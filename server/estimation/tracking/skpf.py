@@ -198,7 +198,7 @@ _UPPER4 = tuple((i, k) for i in range(4) for k in range(i, 4))
 
 
 @register
-class SKPFTracker(selfcal.Calibrating, Tracker):
+class SKPFTracker(selfcal.GaussianCalibrating, Tracker):
     """Self-calibrating SKPF, state [x, y, b, s], the same algorithm in four dimensions.
 
     - prediction: the 8 sigma points of the posterior go through ``selfcal.move`` (no
