@@ -43,6 +43,7 @@ ALLOWED: frozenset[tuple[str, str]] = frozenset({
     ("server.estimation.fingerprint.kde", "KDEModel"),
     ("server.estimation.fingerprint.svm", "SVMModel"),
     ("server.estimation.fingerprint.propagation", "PropagationModel"),
+    ("server.estimation.fingerprint.radiomap", "RadioMapModel"),
     ("server.estimation.fingerprint.dataset", "ReferencePoints"),
     ("server.estimation.fingerprint.calibration", "CovarianceCalibration"),
     ("server.estimation.fingerprint.features", "RssEncoder"),

@@ -2,32 +2,33 @@
 
 A fingerprint model over the surveyed points can only answer a surveyed point (or a
 weighted mean of a few): on a floor walked along a handful of lines, a scan taken
-between them is pulled onto the nearest line. This model first turns the survey into
-a radio map on a grid and matches scans against the grid's cells instead:
+between them is pulled onto the nearest line. This model adds virtual reference points
+between them, from a radio map interpolated over the floor:
 
 1. **Map.** Per (building, floor), each transmitter's encoded RSS (features.py; "not
    heard" is 0, so the map holds how strongly *and how often* a transmitter is heard)
    is a Nadaraya–Watson kernel regression over the floor of the survey's reference
    points (Gaussian kernel of length scale ``length_scale_m``, each point weighted by
-   its number of scans), evaluated at the cells of a ``grid_m`` grid that lie within
-   ``reach_m`` of a surveyed point (no extrapolation into unsurveyed wings). The
-   kernel weights are sparse (cut at 3 length scales), so the map is one sparse
-   matrix product.
-2. **Query.** The ``k`` nearest cells of the chosen floor in feature space (Sørensen
-   distance, as wknn's) vote with weights 1/d: the posterior over cells, reduced to a
-   fix and covariance as for every model (posterior.py). The floor comes from the
-   base class's floor classifier.
+   its number of scans, cut at 3 length scales: a sparse matrix product), evaluated at
+   the cells of a ``grid_m`` grid within ``reach_m`` of at least two surveyed points
+   (no extrapolation into unsurveyed wings; near a single point a cell would only
+   repeat it). The model's reference points are the surveyed points (their own mean
+   fingerprints, so a scan where someone surveyed still finds its point) and the cells.
+2. **Query.** The ``k`` nearest of them on the chosen floor in feature space (Sørensen
+   distance, as wknn's) vote with weights 1/d^``weight_power``: the posterior, reduced
+   to a fix and covariance as for every model (posterior.py). The floor comes from the base class's
+   floor classifier (the only part that uses the heading: the map has none).
 3. **Choices.** ``length_scale_m`` and ``k`` (when None) are chosen by an internal
-   cross-validation that holds out whole survey walks (devices, when there are at least
-   3), else whole reference points, and locates their scans against a map built
-   without them — the situation of a scan taken where nobody surveyed. The fix
+   cross-validation that holds out whole survey walks (devices, when each point was
+   surveyed by one of at least 3), else whole reference points, and locates their scans
+   against a map built without them — a scan taken where nobody surveyed. The fix
    covariance is calibrated on the same held-out fixes (calibration.py); the server's
    training step refits the calibration on its own held-out sample.
 
-Meant for sparse surveys (walks, a few points per room): on a dense survey (one point
-every metre or two) the grid adds nothing over wknn and costs memory. Walking heading
-is not used (the map has none). The artifact stores the survey's reference points,
-not the grid: the grid is rebuilt, identically, when the model is loaded.
+Meant for sparse surveys (walks, a few points per room): on a dense survey the cells
+add little over wknn and cost memory and fit time. No per-query device offset (wknn
+has one). The artifact stores the survey's reference points, not the map: the map is
+rebuilt, identically, when the model is loaded.
 """
 
 from __future__ import annotations
@@ -47,13 +48,16 @@ KERNEL_CUT = 3.0
 
 
 def _grid_cells(xy: np.ndarray, grid_m: float, reach_m: float) -> np.ndarray:
-    """(c, 2) centres of the ``grid_m`` cells within ``reach_m`` of some point of ``xy``."""
+    """(c, 2) centres of the ``grid_m`` cells within ``reach_m`` of at least two points of
+    ``xy`` (a cell near a single point would only repeat that point's fingerprint)."""
+    if len(xy) < 2:
+        return np.zeros((0, 2))
     lo = np.floor((xy.min(axis=0) - reach_m) / grid_m) * grid_m
     hi = xy.max(axis=0) + reach_m
     gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, grid_m), np.arange(lo[1], hi[1] + 1e-9, grid_m))
     cells = np.column_stack([gx.ravel(), gy.ravel()])
-    d, _ = cKDTree(xy).query(cells, distance_upper_bound=reach_m + 1e-9)
-    return cells[np.isfinite(d)]
+    d, _ = cKDTree(xy).query(cells, k=2, distance_upper_bound=reach_m + 1e-9)
+    return cells[np.isfinite(d[:, 1])]
 
 
 def _kernel_map(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, F: sparse.csr_matrix,
@@ -77,24 +81,25 @@ class RadioMapModel(FingerprintModel):
     """length_scale_m: the kernel's length scale (m; None = chosen by cross-validation
     among ``length_grid``); grid_m: cell spacing (m); reach_m: cells farther than this
     from every surveyed point are left out; k: cells voting for the position (None =
-    chosen among ``k_grid``); calibrate: fit ``calibration_`` on the cross-validation's
+    chosen among ``k_grid``); weight_power: the k vote with weights 1/d^p (a sharp p
+    lets an exact match, a scan where someone surveyed, outweigh the smoother cells
+    around it); calibrate: fit ``calibration_`` on the cross-validation's
     held-out fixes; cv_rows: held-out scans the cross-validation locates at most."""
 
     name = "rmap"
 
     def __init__(self, length_scale_m: float | None = None, length_grid: tuple[float, ...] = (3.0, 4.0, 6.0, 8.0, 12.0),
                  grid_m: float = 2.0, reach_m: float = 6.0, k: int | None = None,
-                 k_grid: tuple[int, ...] = (3, 5, 9, 15, 25), calibrate: bool = True, cv_rows: int = 1500,
-                 missing: str = "powed", **common):
+                 k_grid: tuple[int, ...] = (3, 5, 9, 15, 25), weight_power: float = 8.0, calibrate: bool = True,
+                 cv_rows: int = 1500, missing: str = "powed", **common):
         super().__init__(missing=missing, **common)
-        if self.use_heading:
-            raise ValueError("rmap does not use the heading (its map has none)")
         self.length_scale_m = None if length_scale_m is None else float(length_scale_m)
         self.length_grid = tuple(float(v) for v in length_grid)
         self.grid_m = float(grid_m)
         self.reach_m = float(reach_m)
         self.k = None if k is None else int(k)
         self.k_grid = tuple(int(v) for v in k_grid)
+        self.weight_power = float(weight_power)
         self.calibrate = bool(calibrate)
         self.cv_rows = int(cv_rows)
         scales = self.length_grid + (() if self.length_scale_m is None else (self.length_scale_m,))
@@ -105,13 +110,15 @@ class RadioMapModel(FingerprintModel):
         ks = self.k_grid + (() if self.k is None else (self.k,))
         if not ks or min(ks) < 1:
             raise ValueError("k must be at least 1 (and k_grid not empty)")
+        if self.weight_power <= 0:
+            raise ValueError("weight_power must be positive")
         if self.cv_rows < CV_FOLDS:
             raise ValueError(f"cv_rows must be at least {CV_FOLDS}")
 
     # ---- state: the artifact keeps the survey, the grid is rebuilt ----------------------
     def __getstate__(self) -> dict:
         state = dict(vars(self))
-        for name in ("GT_", "g_sum_"):
+        for name in ("GT_", "g_sum_", "rp_xy_", "rp_group_", "rp_", "rp_key_index_"):
             state.pop(name, None)
         return state
 
@@ -125,6 +132,7 @@ class RadioMapModel(FingerprintModel):
         rp = data.rp
         F, weight = self._rp_means(X, rp.row_rp, len(rp))
         self.survey_xy_ = rp.xy
+        self.survey_rp_ = rp
         self.survey_group_ = self.rp_group_.copy()
         self.survey_weight_ = weight
         self.survey_F_ = F
@@ -141,37 +149,36 @@ class RadioMapModel(FingerprintModel):
         A = sparse.csr_matrix((1.0 / counts[row_rp], (row_rp, np.arange(len(row_rp)))), shape=(n_rp, len(row_rp)))
         return sparse.csr_matrix(A @ sparse.csr_matrix(np.asarray(X, dtype=np.float64))), counts
 
-    def _cells(self, xy: np.ndarray, group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cells, cell_group = [], []
-        for g in range(len(self.group_floor_)):
-            on = group == g
-            if on.any():
-                c = _grid_cells(xy[on], self.grid_m, self.reach_m)
+    def _map(self, xy, group, weight, F, length_scale_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The cells of the points (xy, group, weight, F) as (cells (c, 2), their groups,
+        their map (m, c) float32): the points themselves with their own fingerprints
+        first, then the grid cells of each group with the kernel regression."""
+        cells, cell_group, maps = [xy], [group], [np.asarray(F.T.toarray(), dtype=np.float32)]
+        for g in np.unique(group):
+            on = np.flatnonzero(group == g)
+            c = _grid_cells(xy[on], self.grid_m, self.reach_m)
+            if len(c):
                 cells.append(c)
                 cell_group.append(np.full(len(c), g))
-        return np.concatenate(cells), np.concatenate(cell_group)
-
-    def _map(self, cells, cell_group, xy, group, weight, F, length_scale_m) -> np.ndarray:
-        """(m, c) float32 map at ``cells`` from the points (xy, group, weight, F)."""
-        GT = np.zeros((F.shape[1], len(cells)), dtype=np.float32)
-        for g in np.unique(cell_group):
-            on, at = np.flatnonzero(group == g), np.flatnonzero(cell_group == g)
-            GT[:, at] = _kernel_map(cells[at], xy[on], weight[on], F[on], length_scale_m).T
-        return GT
+                maps.append(_kernel_map(c, xy[on], weight[on], F[on], length_scale_m).T)
+        return np.concatenate(cells), np.concatenate(cell_group), np.ascontiguousarray(np.hstack(maps))
 
     def _build_map(self) -> None:
-        """The grid cells become the model's reference points; ``GT_`` is their map."""
-        cells, cell_group = self._cells(self.survey_xy_, self.survey_group_)
-        self.GT_ = self._map(cells, cell_group, self.survey_xy_, self.survey_group_, self.survey_weight_,
-                             self.survey_F_, self.length_scale_m_)
+        """The survey's reference points and the grid cells become the model's reference
+        points; ``GT_`` is their map."""
+        cells, cell_group, self.GT_ = self._map(self.survey_xy_, self.survey_group_, self.survey_weight_,
+                                                self.survey_F_, self.length_scale_m_)
         self.g_sum_ = self.GT_.sum(axis=0, dtype=np.float64)
+        n = len(self.survey_xy_)
+        grid = [(int(self.group_building_[g]), int(self.group_floor_[g]), "P", round(float(x), 3), round(float(y), 3))
+                for g, (x, y) in zip(cell_group[n:], cells[n:], strict=True)]
+        keys = list(self.survey_rp_.keys) + grid
         self.rp_xy_ = cells
         self.rp_group_ = cell_group
-        b, f = self.group_building_[cell_group], self.group_floor_[cell_group]
-        keys = [(int(bb), int(ff), "P", round(float(x), 3), round(float(y), 3))
-                for bb, ff, (x, y) in zip(b, f, cells, strict=True)]
-        self.rp_ = ReferencePoints(keys=keys, labels=[rp_display_label(k) for k in keys], x=cells[:, 0].copy(),
-                                   y=cells[:, 1].copy(), floor=f, building=b, row_rp=np.zeros(0, dtype=int))
+        self.rp_ = ReferencePoints(keys=keys, labels=list(self.survey_rp_.labels) + [rp_display_label(k) for k in grid],
+                                   x=cells[:, 0].copy(), y=cells[:, 1].copy(),
+                                   floor=self.group_floor_[cell_group], building=self.group_building_[cell_group],
+                                   row_rp=np.zeros(0, dtype=int))
         self.rp_key_index_ = {k: i for i, k in enumerate(keys)}
 
     def reuse_choices(self, validated: FingerprintModel) -> None:
@@ -187,13 +194,14 @@ class RadioMapModel(FingerprintModel):
         ``calibrate``) ``calibration_`` on their held-out fixes."""
         rng = np.random.default_rng(0)
         fs, row_rp = data.fs, data.rp.row_rp
-        devices = None if fs.device is None else fs.device.astype(str)
-        if devices is not None and len(set(devices)) >= 3:
-            names = rng.permutation(np.unique(devices))
-            fold_of = {d: i % CV_FOLDS for i, d in enumerate(names)}
-            fold = np.array([fold_of[d] for d in devices])
-        else:
-            fold = (rng.permutation(len(data.rp)) % CV_FOLDS)[row_rp]
+        fold_rp = rng.permutation(len(data.rp)) % CV_FOLDS
+        if fs.device is not None:
+            names, device = np.unique(fs.device.astype(str), return_inverse=True)
+            rp_device = np.full(len(data.rp), -1)
+            rp_device[row_rp] = device
+            if len(names) >= 3 and np.array_equal(rp_device[row_rp], device):  # each point surveyed by one walk
+                fold_rp = (rng.permutation(len(names)) % CV_FOLDS)[rp_device]
+        fold = fold_rp[row_rp]
         scales = self.length_grid if self.length_scale_m is None else (self.length_scale_m,)
         ks = self.k_grid if self.k is None else (self.k,)
         xy_rows = np.column_stack([fs.x, fs.y])
@@ -216,15 +224,14 @@ class RadioMapModel(FingerprintModel):
             te = te[np.isin(data.row_group[te], group)]  # a floor with no map left says nothing
             if not len(te):
                 continue
-            cells, cell_group = self._cells(xy, group)
             count += len(te)
             for i, scale in enumerate(scales):
-                GT = self._map(cells, cell_group, xy, group, weight, F, scale)
+                cells, cell_group, GT = self._map(xy, group, weight, F, scale)
                 D = self._distances(X[te], GT, GT.sum(axis=0, dtype=np.float64))
                 D[cell_group[None, :] != data.row_group[te][:, None]] = np.inf
                 for j, k in enumerate(ks):
                     with np.errstate(divide="ignore"):
-                        pred = self._reduce_over(np.log(self._scores(D, k)), cells, cell_group)
+                        pred = self._reduce_over(np.log(self._scores(D, k, self.weight_power)), cells, cell_group)
                     r = pred.xy - xy_rows[te]
                     errs[i, j] += np.hypot(r[:, 0], r[:, 1]).sum()
                     res.setdefault((i, j), []).append(r)
@@ -255,14 +262,14 @@ class RadioMapModel(FingerprintModel):
         return out
 
     @staticmethod
-    def _scores(D: np.ndarray, k: int) -> np.ndarray:
-        """(nq, c) weights 1/d of each query's k nearest cells, 0 elsewhere."""
+    def _scores(D: np.ndarray, k: int, power: float) -> np.ndarray:
+        """(nq, c) weights 1/d^power of each query's k nearest cells, 0 elsewhere."""
         n, c = D.shape
         k = max(1, min(k, c))
         idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < c else np.tile(np.arange(c), (n, 1))
         d = np.take_along_axis(D, idx, axis=1)
         scores = np.zeros((n, c))
-        np.put_along_axis(scores, idx, np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0), axis=1)
+        np.put_along_axis(scores, idx, np.where(np.isfinite(d), (d + 1e-6) ** -power, 0.0), axis=1)
         return scores
 
     def _reduce_over(self, logs: np.ndarray, cells: np.ndarray, cell_group: np.ndarray):
@@ -290,4 +297,4 @@ class RadioMapModel(FingerprintModel):
         if mask is not None:
             D = np.where(mask, D, np.inf)
         with np.errstate(divide="ignore"):
-            return np.log(self._scores(D, self.k_))
+            return np.log(self._scores(D, self.k_, self.weight_power))
