@@ -73,13 +73,12 @@ def run_training_job(database_url: str, model_id: int) -> str:
             if job is None:  # the model (or its site) was deleted meanwhile
                 return "gone"
             site_id, spec = job.site_id, job.spec
-            rows = survey_store.training_rows(s, site_id, spec.include_crowd)
+            rows = survey_store.stream_training_rows(s, site_id, spec.include_crowd)
+            fs = FingerprintSet.from_rows((_row(r) for r in rows), dtype=_rss_dtype(spec.algorithm))
             transmitters = site_store.positioned_transmitters(s, site_id)
-        trained_on = len(rows)
-        fs = FingerprintSet.from_rows([_row(r) for r in rows], dtype=np.float32) if rows else None
-        del rows  # the records' dicts cost more than the matrix: keep only the matrix
+        trained_on = len(fs)
         try:
-            model, metrics = _fit(fs, spec, transmitters)
+            model, metrics = _fit(fs if trained_on else None, spec, transmitters)
             del fs
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin
@@ -90,6 +89,14 @@ def run_training_job(database_url: str, model_id: int) -> str:
         return "ready" if _store(db, site_id, model_id, blob, trained_on, metrics, spec.activate) else "gone"
     finally:
         db.dispose()
+
+
+def _rss_dtype(algorithm: str) -> type:
+    """The training matrix's dtype: float16 where exact (whole dBm are; float32 otherwise, see
+    ``FingerprintSet.from_rows``) — the models read it through their float32 encoding, so the
+    values are those of float32 at half the memory; float32 for the propagation model, whose
+    path-loss fit computes on the raw dBm in the matrix's own dtype (float16 would underflow)."""
+    return np.float32 if algorithm == "propagation" else np.float16
 
 
 def _fit(fs: FingerprintSet | None, spec: ModelSpec, transmitters: list[Transmitter]):

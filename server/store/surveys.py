@@ -216,7 +216,16 @@ def coverage(s: Session, site_id: int, transmitter_id: str, floor: int, building
 
 
 def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:
-    """The site's fingerprints (survey ones only, unless ``include_crowd``) with their reference point's label."""
+    """`stream_training_rows` as one list (a small site)."""
+    return list(stream_training_rows(s, site_id, include_crowd))
+
+
+def stream_training_rows(
+    s: Session, site_id: int, include_crowd: bool, chunk: int = 2000,
+) -> Iterator[FingerprintRecord]:
+    """The site's fingerprints (survey ones only, unless ``include_crowd``) with their reference point's
+    label, in id order, fetched ``chunk`` rows at a time (a server-side cursor on PostgreSQL): a large
+    site's rows never exist as Python objects all at once (training builds its matrix from them)."""
     query = (
         select(
             Fingerprint.x, Fingerprint.y, Fingerprint.floor, Fingerprint.rss, Fingerprint.heading_deg,
@@ -225,7 +234,9 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[Fingerp
         .outerjoin(ReferencePoint, ReferencePoint.id == Fingerprint.reference_point_id)
         .where(Fingerprint.site_id == site_id)
         .order_by(Fingerprint.id)
+        .execution_options(yield_per=chunk)
     )
     if not include_crowd:
         query = query.where(Fingerprint.source == "survey")
-    return [FingerprintRecord(*row) for row in tuples(s.execute(query))]
+    for row in s.execute(query):
+        yield FingerprintRecord(*row)

@@ -8,6 +8,7 @@ optional extra (UJIIndoorLoc has it; API rows do not, so it defaults to 0).
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -106,9 +107,10 @@ class FingerprintSet:
         meta: dict | None = None,
     ) -> None:
         self.tx_ids = [str(tx) for tx in tx_ids]
-        rss = np.asarray(rss)  # float32 is kept as it is (a large training set's memory), else float64
-        self.rss = rss.reshape(-1, len(self.tx_ids)) if rss.dtype == np.float32 else \
-            np.asarray(rss, dtype=float).reshape(-1, len(self.tx_ids))
+        rss = np.asarray(rss)  # float32 / float16 are kept as they are (a large training set's memory), else float64
+        if rss.dtype not in (np.float32, np.float16):
+            rss = np.asarray(rss, dtype=float)
+        self.rss = rss.reshape(len(rss) if rss.ndim == 2 else -1, len(self.tx_ids))  # (n, 0) too
         n = self.rss.shape[0]
         if len(set(self.tx_ids)) != len(self.tx_ids):
             raise ValueError("duplicate transmitter ids")
@@ -137,38 +139,74 @@ class FingerprintSet:
         """Build from row dicts as the server stores them:
         ``{x, y, floor, rss: {tx_id: dBm}, heading_deg?, label?, device?, user?, t?,
         building?}``. Transmitters are the sorted union of the rows' ids unless
-        ``tx_ids`` is given (ids outside it are dropped). ``dtype=np.float32`` halves
-        the RSS matrix (the server's training)."""
-        rows = list(rows)
-        if tx_ids is None:
-            tx_ids = sorted({tx for r in rows for tx in r["rss"]})
-        tx_ids = list(tx_ids)
-        col = {tx: j for j, tx in enumerate(tx_ids)}
-        rss: np.ndarray = np.full((len(rows), len(tx_ids)), np.nan, dtype=dtype)
-        for i, r in enumerate(rows):
+        ``tx_ids`` is given (ids outside it are dropped).
+
+        The rows are read once and never kept (an iterator streamed from the store is held
+        one row at a time): each reading goes into flat arrays (12 bytes) and the matrix is
+        filled at the end. ``dtype``: float (default); ``np.float32`` halves the matrix;
+        ``np.float16`` (the server's training) quarters it when every reading is exactly a
+        float16 — whole dBm are — and is float32 otherwise, so the values are float32's."""
+        fixed = tx_ids is not None
+        col: dict[str, int] = {} if tx_ids is None else {tx: j for j, tx in enumerate(tx_ids)}
+        heard, cols, values = array("i"), array("i"), array("d")  # readings per row; their columns, dBm
+        xs, ys, headings, times = array("d"), array("d"), array("d"), array("d")
+        floors, buildings = array("q"), array("q")
+        labels: list = []
+        users: list = []
+        devices: list = []
+        shared: dict = {}  # one object per distinct label / user / device
+        given = dict.fromkeys(("building", "t", "user", "device"), False)
+        for r in rows:
+            k = 0
             for tx, v in r["rss"].items():
                 j = col.get(tx)
+                if j is None and not fixed:
+                    j = col[tx] = len(col)
                 if j is not None and v is not None:
-                    rss[i, j] = float(v)
-
-        def opt(key, default=None):
-            vals = [r.get(key) for r in rows]
-            return None if all(v is None for v in vals) else [default if v is None else v for v in vals]
-
-        heading = [np.nan if r.get("heading_deg") is None else float(r["heading_deg"]) for r in rows]
-        labels = [r.get("label") or None for r in rows]
+                    cols.append(j)
+                    values.append(float(v))
+                    k += 1
+            heard.append(k)
+            xs.append(float(r["x"]))
+            ys.append(float(r["y"]))
+            floors.append(int(r["floor"]))
+            h, b, t = r.get("heading_deg"), r.get("building"), r.get("t")
+            headings.append(np.nan if h is None else float(h))
+            buildings.append(0 if b is None else int(b))
+            times.append(np.nan if t is None else float(t))
+            label, user, device = r.get("label") or None, r.get("user"), r.get("device")
+            labels.append(shared.setdefault(label, label))
+            users.append(shared.setdefault(user, user))
+            devices.append(shared.setdefault(device, device))
+            for key, value in (("building", b), ("t", t), ("user", user), ("device", device)):
+                given[key] = given[key] or value is not None
+        names = list(tx_ids) if tx_ids is not None else sorted(col)
+        j = np.frombuffer(cols, dtype=np.int32)
+        if not fixed:  # columns were numbered as first heard: renumber in sorted order
+            renumber = np.empty(len(names), dtype=np.intp)
+            renumber[[col[tx] for tx in names]] = np.arange(len(names))
+            j = renumber[j]
+        v = np.frombuffer(values, dtype=np.float64)
+        target = np.dtype(dtype)
+        if target != np.float64:
+            v = v.astype(np.float32)
+            if target == np.float16 and not np.array_equal(v.astype(np.float16).astype(np.float32), v, equal_nan=True):
+                target = np.dtype(np.float32)
+        n = len(xs)
+        rss: np.ndarray = np.full((n, len(names)), np.nan, dtype=target)
+        rss[np.repeat(np.arange(n), np.frombuffer(heard, dtype=np.int32)), j] = v
         return cls(
             rss=rss,
-            tx_ids=tx_ids,
-            x=[float(r["x"]) for r in rows],
-            y=[float(r["y"]) for r in rows],
-            floor=[int(r["floor"]) for r in rows],
-            heading_deg=heading,
+            tx_ids=names,
+            x=np.array(xs),
+            y=np.array(ys),
+            floor=np.array(floors),
+            heading_deg=np.array(headings),
             label=labels,
-            building=opt("building", 0),
-            user=opt("user"),
-            device=opt("device"),
-            t=opt("t", np.nan),
+            building=np.array(buildings) if given["building"] else None,
+            user=users if given["user"] else None,
+            device=devices if given["device"] else None,
+            t=np.array(times) if given["t"] else None,
         )
 
     def to_rows(self) -> list[dict]:
@@ -213,8 +251,8 @@ class FingerprintSet:
         )
 
     def select_transmitters(self, tx_ids: Sequence[str]) -> FingerprintSet:
-        """Columns reordered to ``tx_ids``; ids this set lacks become all-NaN columns."""
-        return replace(self, rss=self.aligned_rss(tx_ids), tx_ids=list(tx_ids), meta=dict(self.meta))
+        """Columns reordered to ``tx_ids``; ids this set lacks become all-NaN columns (same dtype)."""
+        return replace(self, rss=self.aligned_rss(tx_ids, self.rss.dtype), tx_ids=list(tx_ids), meta=dict(self.meta))
 
     def select_kinds(self, kinds: Sequence[str] | None) -> FingerprintSet:
         """Keep only transmitters whose id starts with one of ``kinds`` (e.g. ["ble"])."""
@@ -235,10 +273,10 @@ class FingerprintSet:
         m = self.heard_mask()
         return self if m.all() else self.subset(m)
 
-    def aligned_rss(self, tx_ids: Sequence[str]) -> np.ndarray:
+    def aligned_rss(self, tx_ids: Sequence[str], dtype: type | np.dtype = float) -> np.ndarray:
         """The RSS matrix with columns in the order of ``tx_ids`` (NaN for unknown)."""
         col = {t: j for j, t in enumerate(self.tx_ids)}
-        out = np.full((len(self), len(tx_ids)), np.nan)
+        out = np.full((len(self), len(tx_ids)), np.nan, dtype=dtype)
         src = [(k, col[t]) for k, t in enumerate(tx_ids) if t in col]
         if src:
             dst, s = zip(*src, strict=True)
