@@ -49,7 +49,8 @@ KERNEL_CUT = 3.0
 
 def _grid_cells(xy: np.ndarray, grid_m: float, reach_m: float) -> np.ndarray:
     """(c, 2) centres of the ``grid_m`` cells within ``reach_m`` of at least two points of
-    ``xy`` (a cell near a single point would only repeat that point's fingerprint)."""
+    ``xy`` (a cell near a single point would only repeat that point's fingerprint) and not
+    within half a step of one (the point itself stands there)."""
     if len(xy) < 2:
         return np.zeros((0, 2))
     lo = np.floor((xy.min(axis=0) - reach_m) / grid_m) * grid_m
@@ -57,7 +58,7 @@ def _grid_cells(xy: np.ndarray, grid_m: float, reach_m: float) -> np.ndarray:
     gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + 1e-9, grid_m), np.arange(lo[1], hi[1] + 1e-9, grid_m))
     cells = np.column_stack([gx.ravel(), gy.ravel()])
     d, _ = cKDTree(xy).query(cells, k=2, distance_upper_bound=reach_m + 1e-9)
-    return cells[np.isfinite(d[:, 1])]
+    return cells[np.isfinite(d[:, 1]) & (d[:, 0] >= 0.5 * grid_m)]
 
 
 def _kernel_map(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, F: sparse.csr_matrix,
