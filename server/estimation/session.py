@@ -232,8 +232,9 @@ class SessionEstimator:
         self.advance(step.t)
         if self.tracker is None:
             return None
+        before = self.tracker.mean
         self.tracker.predict(step)
-        self.tracker.keep_walkable()
+        self.tracker.keep_walkable(before)
         return self._record(step.t, "step")
 
     def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:
@@ -267,7 +268,6 @@ class SessionEstimator:
         }
         for snap in self.landmarks.observe(scan.rss)[:1]:
             apply_snap(self.tracker, snap)
-        self.tracker.keep_walkable()
         return self._record(scan.t, "scan"), refused
 
     def _update(self, fix: Fix) -> str | None:

@@ -151,3 +151,16 @@ def test_truncating_far_in_the_tail_stays_finite_and_lands_inside():
     assert np.all(np.isfinite(new_x)) and np.all(np.isfinite(new_P))
     assert 5.0 <= new_x[0] < 5.05
     assert 0.0 < new_P[0, 0] < 1e-4 and new_P[1, 1] == pytest.approx(0.01)
+
+
+def test_the_first_wall_crossed_is_the_one_the_move_met_first():
+    """A move through a 0.4 m thick obstacle ends nearer its far side; the half-plane is still the
+    near wall's, on the start's side."""
+    from server.estimation.tracking.geometry import first_wall_crossed
+
+    walls = np.array([[0.0, 5.0, 10.0, 5.0], [0.0, 5.4, 10.0, 5.4]])
+    hit = first_wall_crossed(np.array([3.0, 4.0]), np.array([3.2, 5.35]), walls, margin_m=0.05)
+    assert hit is not None
+    normal, c = hit
+    assert normal == pytest.approx([0.0, -1.0]) and c == pytest.approx(-4.95)  # y ≤ 4.95
+    assert first_wall_crossed(np.array([3.0, 4.0]), np.array([3.0, 4.9]), walls) is None

@@ -187,10 +187,11 @@ class Tracker(ABC):
         """The floor's walkable area from now on (None: no constraint)."""
         self.walkable = walkable
 
-    def keep_walkable(self) -> bool:
-        """Bring an estimate that has left the walkable area back into it; whether it moved.
-        The PF does this per particle as it moves, the seed forms not at all (they stay as the
-        seeds have them); the self-calibrating Gaussian filters override it."""
+    def keep_walkable(self, before: np.ndarray | None = None) -> bool:
+        """After a step from ``before``: keep the estimate on the floor plan's side of the walls
+        it crossed; whether it moved. The PF does this per particle as it moves, the seed forms
+        not at all (they stay as the seeds have them); the self-calibrating Gaussian filters
+        override it."""
         return False
 
     def search_region(self) -> tuple[float, float, float, float] | None:

@@ -87,6 +87,33 @@ def enforce_side(point, wall, side: float, margin_m: float = 0.05) -> tuple[np.n
     return foot + side * margin_m * normal, True
 
 
+def first_wall_crossed(start, end, walls: np.ndarray, margin_m: float = 0.05) -> tuple[np.ndarray, float] | None:
+    """The first wall the move start → end crosses, as the half-plane on ``start``'s side
+    ``nᵀp ≥ c`` (n the unit normal towards ``start``, c the wall's line pulled ``margin_m``
+    towards start); None when it crosses none."""
+    p0, p1 = np.asarray(start, float), np.asarray(end, float)
+    crossed = np.flatnonzero(segments_cross(p0, p1, np.asarray(walls, float).reshape(-1, 4)))
+    if len(crossed) == 0:
+        return None
+    w = walls[crossed]
+    a, d = w[:, :2], w[:, 2:] - w[:, :2]
+    r = p1 - p0
+    denom = r[0] * d[:, 1] - r[1] * d[:, 0]
+    qp = a - p0
+    t = np.where(np.abs(denom) > _EPS, (qp[:, 0] * d[:, 1] - qp[:, 1] * d[:, 0]) / np.where(denom == 0, 1.0, denom),
+                 0.0)
+    k = int(np.argmin(t))
+    dx, dy = d[k]
+    length = math.hypot(dx, dy)
+    if length < _EPS:
+        return None
+    n = np.array([-dy, dx]) / length
+    offset = float(n @ a[k])
+    if float(n @ p0) < offset:
+        n, offset = -n, -offset
+    return n, offset + margin_m
+
+
 def truncate_halfplane(x: np.ndarray, P: np.ndarray, normal, c: float) -> tuple[np.ndarray, np.ndarray]:
     """The Gaussian N(x, P) conditioned on nᵀx[:2] ≥ c, moment-matched (PDF truncation,
     Simon & Simon 2010): the 1-D marginal u = nᵀx[:2] ~ N(μ, σ²) is truncated to u ≥ c, and
