@@ -286,7 +286,7 @@ class SessionEstimator:
         assert self.tracker is not None
         R_own = fix_cov(fix.covariance)
         learns = self.tracker.augmented
-        R = R_own * self.fix_noise.multiplier if learns else R_own
+        R = R_own * self.fix_noise.scale if learns else R_own
         fix = replace(fix, covariance=R)
         d2 = self._d2(fix, R)
         if self.innovations is not None:

@@ -128,34 +128,3 @@ def test_a_seed_form_takes_the_fix_as_the_model_gives_it(name):
     for _ in run_batches(est, steps, scans, OverconfidentFixes(truth_at, seed=5)):
         pass
     assert est.fix_noise.scale == 1.0 and est.fix_noise.weight == 0.0
-
-
-def test_white_innovations_learn_no_correlation_and_ar1_ones_do():
-    """Innovations from an AR(1) with lag-1 correlation 0.7 raise the factor on R (capped at
-    RHO_MAX); independent ones leave it near 1."""
-    from server.estimation.tracking.fixnoise import RHO_MAX
-
-    rng = np.random.default_rng(5)
-    P, R = np.eye(2) * 0.5, np.eye(2)
-    white, ar1 = FixNoiseScale(), FixNoiseScale()
-    e = np.zeros(2)
-    rho_white, rho_ar1 = [], []
-    for _ in range(400):
-        white.observe(rng.multivariate_normal([0, 0], P + R), P, R)
-        e = 0.7 * e + np.sqrt(1 - 0.7**2) * rng.multivariate_normal([0, 0], P + R)
-        ar1.observe(e, P, R)
-        rho_white.append(white.correlation)
-        rho_ar1.append(ar1.correlation)
-    assert np.mean(rho_white[100:]) < 0.1
-    assert np.mean(rho_ar1[100:]) > 0.35
-    assert ar1.correlation <= RHO_MAX and ar1.factor == pytest.approx((1 + ar1.correlation) / (1 - ar1.correlation))
-
-
-def test_the_learned_correlation_survives_storage_and_older_lists_load():
-    est = FixNoiseScale()
-    for y in ([1.0, 0.5], [1.2, 0.4], [0.9, 0.7]):
-        est.observe(np.array(y), np.eye(2) * 0.2, np.eye(2))
-    back = FixNoiseScale.from_list(json.loads(json.dumps(est.to_list())))
-    assert back == est and back.factor == est.factor > 1.0
-    old = FixNoiseScale.from_list([2.0, 3.0])  # stored before the correlation existed
-    assert old.corr_total == 0.0 and old.prev is None and old.factor == 1.0

@@ -122,13 +122,12 @@ def test_after_a_run_of_refused_fixes_the_covariance_grows_until_a_fix_passes(na
         _, refused = _scan_at(est, float(k), 30.0, 30.0)
         assert refused is not None and est.gated_in_a_row == k + 1
     # Each further far fix doubles P before the gate looks again, until d² = 1800 / (P + s) passes
-    # (s: the session's learned fix-noise multiplier: the far fixes teach a self-calibrating
+    # (s: the session's learned fix-noise scale: the far fixes teach a self-calibrating
     # tracker's to grow; a seed form's stays 1).
     from server.estimation.tracking.fixnoise import student_t_factor
 
     for k in range(30):
-        P = est.tracker.covariance[0, 0]
-        s = est.fix_noise.multiplier if est.tracker.augmented else 1.0
+        P, s = est.tracker.covariance[0, 0], est.fix_noise.scale
         e, refused = _scan_at(est, 10.0 + k, 30.0, 30.0)
         inflated = INFLATE_FACTOR * P
         if refused is not None:
