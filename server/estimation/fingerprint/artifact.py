@@ -49,6 +49,7 @@ ALLOWED: frozenset[tuple[str, str]] = frozenset({
     ("server.estimation.fingerprint.features", "RssEncoder"),
     ("server.estimation.fingerprint.distance", "SquaredDistance"),
     ("server.estimation.fingerprint.gaussian", "GaussianRpStats"),
+    ("server.estimation.fingerprint.base", "FloorKNN"),
     ("sklearn.svm._classes", "SVC"),
     ("sklearn.svm._classes", "SVR"),
     ("sklearn.ensemble._forest", "ExtraTreesClassifier"),

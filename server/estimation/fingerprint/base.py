@@ -29,9 +29,11 @@ from .dataset import FingerprintSet, ReferencePoints
 from .features import RssEncoder, heading_features
 from .posterior import Prediction, reduce_posterior
 
-#: fingerprints the floor classifier is fitted on at most (chosen on UJIIndoorLoc's choosing
-#: users: benchmarks/floor_classifier_scale.py)
+#: fingerprints an SVC / extra-trees floor classifier is fitted on at most (chosen on
+#: UJIIndoorLoc's choosing users: benchmarks/floor_classifier_scale.py)
 FLOOR_CLASSIFIER_ROWS = 4000
+#: values of ``floor_classifier`` (benchmarks/floor_classifier_choice.py compares them)
+FLOOR_CLASSIFIERS = (None, "svc", "trees", "knn", "knn-svc")
 
 
 def stratified_rows(group: np.ndarray, cap: int, seed: int = 0) -> np.ndarray:
@@ -46,6 +48,107 @@ def stratified_rows(group: np.ndarray, cap: int, seed: int = 0) -> np.ndarray:
     quota = np.minimum(counts, np.maximum(1, np.floor(counts * cap / n).astype(int)))
     return np.sort(np.concatenate([rng.choice(np.flatnonzero(inv == g), size=int(q), replace=False)
                                    for g, q in enumerate(quota)]))
+
+
+def decode_rss(encoder: RssEncoder, Q: np.ndarray) -> np.ndarray:
+    """Features made by ``encoder`` back to dBm (NaN = not heard)."""
+    v = np.asarray(Q, dtype=np.float64)
+    if encoder.missing == "powed":
+        v = v ** (1.0 / encoder.beta)
+    elif encoder.missing == "exponential":
+        v = np.where(v > 0, np.log(np.maximum(v, 1e-12)) * encoder.alpha / -encoder.floor_dbm + 1.0, 0.0)
+    return np.where(v > 0, encoder.floor_dbm + v * (-encoder.floor_dbm), np.nan)
+
+
+class FloorKNN:
+    """(building, floor) of a scan by its nearest reference points, building first.
+
+    Features: exponential RSS (``RssEncoder("exponential")``), each scan divided by its
+    sum. A constant dB offset multiplies exponential features by one factor, so the
+    normalised scan does not depend on the phone's offset (only readings pushed across
+    ``floor_dbm`` change it). Each reference point is the mean of its fingerprints:
+    fitting is one pass over the rows (O(n)) and a query costs O(reference points × heard
+    transmitters) whatever the number of fingerprints. Distance: Bray–Curtis (Sørensen).
+
+    Building: the ``k`` nearest reference points vote (weights 1/d). Floor: the ``k``
+    nearest of that building vote, or (``svc`` given) that SVC over (building, floor)
+    groups decides among the building's groups — a scan in building 1 never gets a
+    floor of building 0.
+
+    ``predict`` takes the model's floor design (its encoded RSS in the first ``n_rss``
+    columns, heading columns after them, ignored here) and returns group indices.
+    """
+
+    def __init__(self, input_encoder: RssEncoder, n_rss: int, k: int = 3, svc=None):
+        self.input_encoder = input_encoder
+        self.n_rss = int(n_rss)
+        self.k = int(k)
+        self.svc = svc
+        self.encoder = RssEncoder("exponential", input_encoder.floor_dbm)
+
+    def _features(self, design: np.ndarray) -> np.ndarray:
+        V = self.encoder.transform(decode_rss(self.input_encoder, np.asarray(design)[:, : self.n_rss]))
+        return V / np.maximum(V.sum(axis=1, keepdims=True), np.float32(1e-12))
+
+    def fit(self, design: np.ndarray, row_rp: np.ndarray, rp_group: np.ndarray, group_building: np.ndarray) -> Self:
+        """design: (n, ≥ n_rss) rows; row_rp: each row's reference point; rp_group: each
+        reference point's (building, floor) group; group_building: each group's building."""
+        n_rp = len(rp_group)
+        means = np.zeros((n_rp, self.n_rss))
+        for s in range(0, len(row_rp), 4096):  # bounded temporaries
+            np.add.at(means, row_rp[s: s + 4096], self._features(design[s: s + 4096]))
+        means /= np.maximum(np.bincount(row_rp, minlength=n_rp), 1)[:, None]
+        self.MT_ = np.ascontiguousarray(means.T, dtype=np.float32)  # (m, n_rp): a transmitter's column contiguous
+        self.m_sum_ = self.MT_.sum(axis=0, dtype=np.float64)
+        self.rp_group_ = np.asarray(rp_group, dtype=np.int64)
+        self.group_building_ = np.asarray(group_building)
+        self.rp_building_ = self.group_building_[self.rp_group_]
+        return self
+
+    def distances(self, design: np.ndarray) -> np.ndarray:
+        """(nq, n_rp) Bray–Curtis distances from scans to the reference points."""
+        V = self._features(design)
+        out = np.ones((len(V), self.MT_.shape[1]))
+        for i, q in enumerate(V):
+            cols = np.flatnonzero(q > 0)
+            if len(cols):
+                qv = q[cols]
+                inter = np.minimum(self.MT_[cols], qv[:, None]).sum(axis=0, dtype=np.float64)
+                tot = float(qv.sum()) + self.m_sum_
+                out[i] = (tot - 2.0 * inter) / np.maximum(tot, 1e-12)
+        return out
+
+    def _vote(self, D: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """Per row, the label of the ``k`` nearest finite columns with the largest 1/d sum."""
+        n = len(D)
+        k = max(1, min(self.k, D.shape[1]))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (n, 1))
+        d = np.take_along_axis(D, idx, axis=1)
+        values, inv = np.unique(labels, return_inverse=True)
+        votes = np.zeros((n, len(values)))
+        np.add.at(votes, (np.broadcast_to(np.arange(n)[:, None], idx.shape), np.asarray(inv)[idx]),
+                  np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0))
+        return values[np.argmax(votes, axis=1)]
+
+    def predict(self, design: np.ndarray) -> np.ndarray:
+        design = np.atleast_2d(design)
+        if not len(design):
+            return np.zeros(0, dtype=np.int64)
+        D = self.distances(design)
+        b = self._vote(D, self.rp_building_)
+        in_b = self.group_building_[None, :] == b[:, None]  # (nq, groups)
+        if self.svc is None:
+            return self._vote(np.where(in_b[:, self.rp_group_], D, np.inf), self.rp_group_)
+        classes = self.svc.classes_
+        dec = self.svc.decision_function(design)
+        if dec.ndim == 1:  # two classes: the sign picks classes_[1]
+            dec = np.column_stack([-dec, dec])
+        scores = np.full(in_b.shape, -np.inf)
+        scores[:, classes] = dec
+        scores = np.where(in_b, scores, -np.inf)
+        none = ~np.isfinite(scores).any(axis=1)  # the SVC never saw this building's groups
+        scores[none] = np.where(in_b[none], 0.0, -np.inf)
+        return np.argmax(scores, axis=1)
 
 
 class UnknownTransmittersError(ValueError):
@@ -92,12 +195,14 @@ class FingerprintModel:
     cov_floor_m: std (m) added to both axes of every covariance; None = auto (half the
         median spacing of neighbouring reference points, at least 0.5 m).
     n_candidates: how many candidates a Fix lists.
-    floor_classifier: "svc" (default): a dedicated RBF SVC over (building, floor) picks
-        the floor first and the model then only considers that floor's reference
-        points (skipped when the site has one floor; fitted on a stratified sample of
-        at most ``floor_classifier_rows`` fingerprints, default FLOOR_CLASSIFIER_ROWS);
-        "trees": extra trees instead;
-        None: the floor holding most of the model's own posterior mass wins.
+    floor_classifier: a dedicated classifier picks the (building, floor) first and the
+        model then only considers that floor's reference points (skipped when the site
+        has one floor). "svc" (default): an RBF SVC over (building, floor), fitted on a
+        stratified sample of at most ``floor_classifier_rows`` fingerprints (default
+        FLOOR_CLASSIFIER_ROWS); "trees": extra trees instead; "knn": `FloorKNN`, nearest
+        reference points, building then floor; "knn-svc": `FloorKNN`'s building, then the
+        SVC among that building's floors; None: the floor holding most of the model's
+        own posterior mass wins.
     """
 
     name = "base"
@@ -123,8 +228,8 @@ class FingerprintModel:
         self.heading_weight = heading_weight
         self.cov_floor_m = cov_floor_m
         self.n_candidates = int(n_candidates)
-        if floor_classifier not in (None, "svc", "trees"):
-            raise ValueError("floor_classifier must be None, 'svc' or 'trees'")
+        if floor_classifier not in FLOOR_CLASSIFIERS:
+            raise ValueError(f"floor_classifier must be one of {FLOOR_CLASSIFIERS}, not {floor_classifier!r}")
         self.floor_classifier = floor_classifier
         if int(floor_classifier_rows) < 1:
             raise ValueError("floor_classifier_rows must be at least 1")
@@ -182,7 +287,9 @@ class FingerprintModel:
         data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
         self.calibration_: CovarianceCalibration = IDENTITY  # the training step (or ``_fit``) calibrates
         self._fit(X, H, data)
-        self.floor_clf_ = self._fit_floor_classifier(X, H, data.row_group)
+        t1 = time.perf_counter()
+        self.floor_clf_ = self._fit_floor_classifier(X, H, data)
+        self.floor_fit_time_s_ = time.perf_counter() - t1
         self.fit_time_s_ = time.perf_counter() - t0
         return self
 
@@ -197,23 +304,27 @@ class FingerprintModel:
     def _floor_design(self, X, H):
         return X if H is None else np.hstack([X, self.heading_weight_ * H])
 
-    def _fit_floor_classifier(self, X, H, row_group):
-        """The (building, floor) classifier, fitted on at most ``floor_classifier_rows``
-        fingerprints (a stratified sample: an RBF SVC's fit grows ≈ n², its size with n)."""
+    def _fit_floor_classifier(self, X, H, data: TrainingData):
+        """The (building, floor) classifier (``floor_classifier``). An SVC or extra trees
+        is fitted on at most ``floor_classifier_rows`` fingerprints (a stratified sample:
+        an RBF SVC's fit grows ≈ n², its size with n); `FloorKNN` on every row (O(n))."""
+        row_group = data.row_group
         if self.floor_classifier is None or len(np.unique(row_group)) < 2:
             return None
-        rows = stratified_rows(row_group, self.floor_classifier_rows)
-        X, row_group = X[rows], row_group[rows]
-        H = None if H is None else H[rows]
-        if self.floor_classifier == "svc":
+        clf = None
+        if self.floor_classifier != "knn":
+            rows = stratified_rows(row_group, self.floor_classifier_rows)
+            sample, labels = self._floor_design(X[rows], None if H is None else H[rows]), row_group[rows]
+            if self.floor_classifier == "trees":
+                from sklearn.ensemble import ExtraTreesClassifier
+
+                return ExtraTreesClassifier(n_estimators=100, min_samples_leaf=1, random_state=0).fit(sample, labels)
             from sklearn.svm import SVC
 
-            clf = SVC(C=10.0, gamma="scale")
-        else:
-            from sklearn.ensemble import ExtraTreesClassifier
-
-            clf = ExtraTreesClassifier(n_estimators=100, min_samples_leaf=1, random_state=0)
-        return clf.fit(self._floor_design(X, H), row_group)
+            clf = SVC(C=10.0, gamma="scale").fit(sample, labels)
+            if self.floor_classifier == "svc":
+                return clf
+        return FloorKNN(self.encoder_, X.shape[1], svc=clf).fit(X, data.rp.row_rp, self.rp_group_, self.group_building_)
 
     def _auto_cov_floor(self) -> float:
         spacings = []
