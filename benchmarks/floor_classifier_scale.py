@@ -1,7 +1,8 @@
 """The floor classifier fitted on a bounded sample: how many fingerprints it needs.
 
-The RBF SVC that picks (building, floor) for knn, kde, nbc, tkbe and propagation fits
-in ≈ n² and stores ≈ n support vectors; fitted on a stratified sample of at most
+The RBF SVC that picks the floor for knn, kde, nbc, tkbe and propagation (alone:
+``floor_classifier="svc"``, measured here; or after `FloorKNN`'s building in the default
+"knn-svc") fits in ≈ n² and stores ≈ n support vectors; fitted on a stratified sample of at most
 ``floor_classifier_rows`` fingerprints, both are bounded. UJIIndoorLoc users are split
 as in benchmarks/fingerprint_choice.py: the cap is CHOSEN on the CHOOSE users (trained
 on everyone outside CHOOSE ∪ REPORT), then REPORTED once on the REPORT users (trained on
@@ -27,7 +28,7 @@ from server.estimation.fingerprint.registry import make_model
 
 def run(train, test, cap: int) -> str:
     t0 = time.perf_counter()
-    model = make_model("knn", {"floor_classifier_rows": cap or len(train)}).fit(train)
+    model = make_model("knn", {"floor_classifier": "svc", "floor_classifier_rows": cap or len(train)}).fit(train)
     fit_s = time.perf_counter() - t0
     pred = model.predict(test.aligned_rss(model.tx_ids_))
     floor = float(np.mean((pred.floor == test.floor) & (pred.building == test.building)))

@@ -133,3 +133,31 @@ def test_bad_option_values_raise(bad):
 def test_bad_row_cap_raises():
     with pytest.raises(ValueError):
         KNNModel(floor_classifier_rows=0)
+
+
+class _WrongBuildingSVC:
+    """Stands in for the SVC: always answers group 0 (building 0, floor 0); its decision
+    values rank the groups by index, so building 1's best is its last group."""
+
+    def __init__(self, n_groups):
+        self.classes_ = np.arange(n_groups)
+
+    def predict(self, X):
+        return np.zeros(len(X), dtype=int)
+
+    def decision_function(self, X):
+        return np.tile(np.arange(len(self.classes_), dtype=float), (len(X), 1))
+
+
+def test_knn_svc_keeps_the_svc_inside_the_knn_building(campus, models):
+    sites, leak, _ = campus
+    model = models["knn-svc"]
+    scans, truth = _held_out(sites, leak, seed=13)
+    clf = model.floor_clf_
+    stub = FloorKNN(clf.input_encoder, clf.n_rss, clf.k, svc=_WrongBuildingSVC(len(model.group_floor_)))
+    vars(stub).update({k: v for k, v in vars(clf).items() if k.endswith("_")})
+    g = stub.predict(model.encoder_.transform(model.scan_matrix(scans)))
+    b1 = truth[:, 0] == 1
+    assert np.all(g[~b1] == 0)  # the SVC's answer stands when it is in the chosen building
+    last_b1 = int(np.flatnonzero(model.group_building_ == 1).max())
+    assert np.all(g[b1] == last_b1)  # otherwise its best group of the chosen building
