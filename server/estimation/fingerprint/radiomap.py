@@ -61,12 +61,11 @@ def _grid_cells(xy: np.ndarray, grid_m: float, reach_m: float) -> np.ndarray:
     return cells[np.isfinite(d[:, 1]) & (d[:, 0] >= 0.5 * grid_m)]
 
 
-def _kernel_map(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, F: sparse.csr_matrix,
-                length_scale_m: float) -> np.ndarray:
-    """(c, m) float32: the kernel regression at ``cells`` of the points ``xy`` (weights
-    ``weight``, encoded fingerprints ``F`` (p, m)). Both factors are sparse (a cut
-    kernel; a scan hears a few of the site's transmitters), so the product is too. A
-    cell beyond the cut from every point takes its nearest point's fingerprint."""
+def _kernel_weights(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, length_scale_m: float) -> sparse.csr_matrix:
+    """(c, p) sparse row-normalised kernel weights of the points ``xy`` (each also weighted by
+    ``weight``) at ``cells``, cut at ``KERNEL_CUT`` length scales; a cell beyond the cut from
+    every point takes its nearest point. The map at the cells is ``W @ F`` (F the points'
+    encoded fingerprints: sparse too, a scan hears a few of the site's transmitters)."""
     points = cKDTree(xy)
     D = cKDTree(cells).sparse_distance_matrix(points, KERNEL_CUT * length_scale_m, output_type="coo_matrix")
     W = sparse.csr_matrix((np.exp(-0.5 * (D.data / length_scale_m) ** 2) * weight[D.col], (D.row, D.col)),
@@ -74,8 +73,7 @@ def _kernel_map(cells: np.ndarray, xy: np.ndarray, weight: np.ndarray, F: sparse
     lonely = np.flatnonzero(np.diff(W.indptr) == 0)
     if len(lonely):
         W = W + sparse.csr_matrix((np.ones(len(lonely)), (lonely, points.query(cells[lonely])[1])), shape=W.shape)
-    W = sparse.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W
-    return np.asarray((W @ F).toarray(), dtype=np.float32)
+    return sparse.csr_matrix(sparse.diags(1.0 / np.asarray(W.sum(axis=1)).ravel()) @ W)
 
 
 class RadioMapModel(FingerprintModel):
@@ -150,26 +148,32 @@ class RadioMapModel(FingerprintModel):
         A = sparse.csr_matrix((1.0 / counts[row_rp], (row_rp, np.arange(len(row_rp)))), shape=(n_rp, len(row_rp)))
         return sparse.csr_matrix(A @ sparse.csr_matrix(np.asarray(X, dtype=np.float64))), counts
 
-    def _map(self, xy, group, weight, F, length_scale_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _map(self, xy, group, weight, F, length_scale_m, cols=None):
         """The cells of the points (xy, group, weight, F) as (cells (c, 2), their groups,
-        their map (m, c) float32): the points themselves with their own fingerprints
-        first, then the grid cells of each group with the kernel regression."""
-        cells, cell_group, maps = [xy], [group], [np.asarray(F.T.toarray(), dtype=np.float32)]
+        their map (m, c) float32 — only the transmitter columns ``cols`` when given —, and
+        each cell's feature sum over every transmitter, (c,) float64): the points
+        themselves with their own fingerprints first, then the grid cells of each group
+        with the kernel regression."""
+        Fc = F if cols is None else F[:, cols]
+        cells, cell_group = [xy], [group]
+        maps, sums = [np.asarray(Fc.T.toarray(), dtype=np.float32)], [np.asarray(F.sum(axis=1)).ravel()]
         for g in np.unique(group):
             on = np.flatnonzero(group == g)
             c = _grid_cells(xy[on], self.grid_m, self.reach_m)
             if len(c):
+                W = _kernel_weights(c, xy[on], weight[on], length_scale_m)
                 cells.append(c)
                 cell_group.append(np.full(len(c), g))
-                maps.append(_kernel_map(c, xy[on], weight[on], F[on], length_scale_m).T)
-        return np.concatenate(cells), np.concatenate(cell_group), np.ascontiguousarray(np.hstack(maps))
+                maps.append(np.asarray((W @ Fc[on]).toarray(), dtype=np.float32).T)
+                sums.append(W @ sums[0][on])
+        return (np.concatenate(cells), np.concatenate(cell_group), np.ascontiguousarray(np.hstack(maps)),
+                np.concatenate(sums))
 
     def _build_map(self) -> None:
         """The survey's reference points and the grid cells become the model's reference
         points; ``GT_`` is their map."""
-        cells, cell_group, self.GT_ = self._map(self.survey_xy_, self.survey_group_, self.survey_weight_,
-                                                self.survey_F_, self.length_scale_m_)
-        self.g_sum_ = self.GT_.sum(axis=0, dtype=np.float64)
+        cells, cell_group, self.GT_, self.g_sum_ = self._map(self.survey_xy_, self.survey_group_, self.survey_weight_,
+                                                             self.survey_F_, self.length_scale_m_)
         n = len(self.survey_xy_)
         grid = [(int(self.group_building_[g]), int(self.group_floor_[g]), "P", round(float(x), 3), round(float(y), 3))
                 for g, (x, y) in zip(cell_group[n:], cells[n:], strict=True)]
@@ -226,13 +230,16 @@ class RadioMapModel(FingerprintModel):
             if not len(te):
                 continue
             count += len(te)
+            cols = np.flatnonzero((X[te] > 0).any(axis=0))  # the map where the held-out scans look
             for i, scale in enumerate(scales):
-                cells, cell_group, GT = self._map(xy, group, weight, F, scale)
-                D = self._distances(X[te], GT, GT.sum(axis=0, dtype=np.float64))
+                cells, cell_group, GT, g_sum = self._map(xy, group, weight, F, scale, cols)
+                D = self._distances(X[te][:, cols], GT, g_sum)
                 D[cell_group[None, :] != data.row_group[te][:, None]] = np.inf
+                order = self._nearest(D, max(ks))
                 for j, k in enumerate(ks):
                     with np.errstate(divide="ignore"):
-                        pred = self._reduce_over(np.log(self._scores(D, k, self.weight_power)), cells, cell_group)
+                        pred = self._reduce_over(np.log(self._scores(D, k, self.weight_power, order)), cells,
+                                                 cell_group)
                     r = pred.xy - xy_rows[te]
                     errs[i, j] += np.hypot(r[:, 0], r[:, 1]).sum()
                     res.setdefault((i, j), []).append(r)
@@ -257,19 +264,24 @@ class RadioMapModel(FingerprintModel):
         for i, q in enumerate(Q):
             cols = np.flatnonzero(q > 0)
             qv = q[cols]
-            inter = np.minimum(GT[cols], qv[:, None]).sum(axis=0, dtype=np.float64)
+            inter = np.minimum(GT[cols], qv[:, None]).sum(axis=0)
             tot = float(qv.sum(dtype=np.float64)) + g_sum
             out[i] = (tot - 2.0 * inter) / np.maximum(tot, 1e-9)
         return out
 
     @staticmethod
-    def _scores(D: np.ndarray, k: int, power: float) -> np.ndarray:
-        """(nq, c) weights 1/d^power of each query's k nearest cells, 0 elsewhere."""
-        n, c = D.shape
-        k = max(1, min(k, c))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < c else np.tile(np.arange(c), (n, 1))
+    def _nearest(D: np.ndarray, k: int) -> np.ndarray:
+        """(nq, k) column indices of each row's k smallest distances, nearest first."""
+        k = max(1, min(k, D.shape[1]))
+        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
+        return np.take_along_axis(idx, np.argsort(np.take_along_axis(D, idx, axis=1), axis=1), axis=1)
+
+    def _scores(self, D: np.ndarray, k: int, power: float, order: np.ndarray | None = None) -> np.ndarray:
+        """(nq, c) weights 1/d^power of each query's k nearest cells (from ``order``, each
+        row's nearest first, when given), 0 elsewhere."""
+        idx = (self._nearest(D, k) if order is None else order)[:, :k]
         d = np.take_along_axis(D, idx, axis=1)
-        scores = np.zeros((n, c))
+        scores = np.zeros(D.shape)
         np.put_along_axis(scores, idx, np.where(np.isfinite(d), (d + 1e-6) ** -power, 0.0), axis=1)
         return scores
 
