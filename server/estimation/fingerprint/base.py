@@ -86,6 +86,23 @@ class FloorKNN:
         self.svc = svc
         self.encoder = RssEncoder("exponential", input_encoder.floor_dbm)
 
+    def __getstate__(self) -> dict:
+        """Artifacts store the mostly-zero reference-point matrix sparse."""
+        from scipy import sparse
+
+        state = dict(vars(self))
+        if isinstance(state.get("MT_"), np.ndarray):
+            state["MT_"] = sparse.csr_matrix(state["MT_"])
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        from scipy import sparse
+
+        state = dict(state)
+        if sparse.issparse(state.get("MT_")):
+            state["MT_"] = np.ascontiguousarray(state["MT_"].toarray(), dtype=np.float32)
+        vars(self).update(state)
+
     def _features(self, design: np.ndarray) -> np.ndarray:
         V = self.encoder.transform(decode_rss(self.input_encoder, np.asarray(design)[:, : self.n_rss]))
         return V / np.maximum(V.sum(axis=1, keepdims=True), np.float32(1e-12))
