@@ -110,10 +110,14 @@ class FloorKNN:
     def fit(self, design: np.ndarray, row_rp: np.ndarray, rp_group: np.ndarray, group_building: np.ndarray) -> Self:
         """design: (n, ≥ n_rss) rows; row_rp: each row's reference point; rp_group: each
         reference point's (building, floor) group; group_building: each group's building."""
-        n_rp = len(rp_group)
+        from scipy import sparse
+
+        n_rp, n = len(rp_group), len(row_rp)
         means = np.zeros((n_rp, self.n_rss))
-        for s in range(0, len(row_rp), 4096):  # bounded temporaries
-            np.add.at(means, row_rp[s: s + 4096], self._features(design[s: s + 4096]))
+        for s in range(0, n, 4096):  # in blocks: bounded temporaries
+            rows = np.arange(s, min(s + 4096, n))
+            member = sparse.csr_matrix((np.ones(len(rows)), (row_rp[rows], rows - s)), shape=(n_rp, len(rows)))
+            means += member @ self._features(design[rows]).astype(np.float64)
         means /= np.maximum(np.bincount(row_rp, minlength=n_rp), 1)[:, None]
         self.MT_ = np.ascontiguousarray(means.T, dtype=np.float32)  # (m, n_rp): a transmitter's column contiguous
         self.m_sum_ = self.MT_.sum(axis=0, dtype=np.float64)
