@@ -239,4 +239,5 @@ def stream_training_rows(
     if not include_crowd:
         query = query.where(Fingerprint.source == "survey")
     for row in s.execute(query):
-        yield FingerprintRecord(*row)
+        values: tuple[Any, ...] = tuple(row)
+        yield FingerprintRecord(*values)

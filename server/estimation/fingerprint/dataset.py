@@ -181,20 +181,20 @@ class FingerprintSet:
             for key, value in (("building", b), ("t", t), ("user", user), ("device", device)):
                 given[key] = given[key] or value is not None
         names = list(tx_ids) if tx_ids is not None else sorted(col)
-        j = np.frombuffer(cols, dtype=np.int32)
+        column: np.ndarray = np.frombuffer(cols, dtype=np.int32)
         if not fixed:  # columns were numbered as first heard: renumber in sorted order
             renumber = np.empty(len(names), dtype=np.intp)
             renumber[[col[tx] for tx in names]] = np.arange(len(names))
-            j = renumber[j]
+            column = renumber[column]
         v = np.frombuffer(values, dtype=np.float64)
-        target = np.dtype(dtype)
+        target: np.dtype = np.dtype(dtype)
         if target != np.float64:
             v = v.astype(np.float32)
             if target == np.float16 and not np.array_equal(v.astype(np.float16).astype(np.float32), v, equal_nan=True):
                 target = np.dtype(np.float32)
         n = len(xs)
         rss: np.ndarray = np.full((n, len(names)), np.nan, dtype=target)
-        rss[np.repeat(np.arange(n), np.frombuffer(heard, dtype=np.int32)), j] = v
+        rss[np.repeat(np.arange(n), np.frombuffer(heard, dtype=np.int32)), column] = v
         return cls(
             rss=rss,
             tx_ids=names,
