@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 import shapely
-import shapely.ops
 from shapely.geometry.base import BaseGeometry
 
 from server.estimation.tracking.geometry import crosses_walls, segments_cross
@@ -345,11 +344,6 @@ class Walkable:
         if len(edge):
             out[edge] = shapely.intersects_xy(self.geometry, p[edge, 0], p[edge, 1])
         return out
-
-    def nearest(self, point) -> np.ndarray:
-        """The point of the area nearest to ``point`` (x, y) (itself when inside)."""
-        near, _ = shapely.ops.nearest_points(self.geometry, shapely.Point(float(point[0]), float(point[1])))
-        return np.array([near.x, near.y])
 
 
 class WallIndex:

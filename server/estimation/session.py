@@ -28,6 +28,7 @@ from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
+    ParticleFilterXYTracker,
     apply_snap,
     make_tracker,
     tracker_from_dict,
@@ -200,7 +201,8 @@ class SessionEstimator:
         if walls is not self._plan_walls:
             self.tracker.set_walls(walls)
             self._plan_walls = walls
-        self.tracker.set_walkable(site.walkable.get((building, level)))
+        if isinstance(self.tracker, ParticleFilterXYTracker):
+            self.tracker.set_walkable(site.walkable.get((building, level)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint
@@ -232,9 +234,7 @@ class SessionEstimator:
         self.advance(step.t)
         if self.tracker is None:
             return None
-        before = self.tracker.mean
         self.tracker.predict(step)
-        self.tracker.keep_walkable(before)
         return self._record(step.t, "step")
 
     def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:

@@ -23,14 +23,11 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from server.estimation.types import Fix, Step
-
-if TYPE_CHECKING:
-    from server.estimation.floorplan import Walkable
 
 FORMAT_VERSION = 2
 #: version-1 names of the filters whose seed form has been renamed ``<name>-xy``
@@ -139,8 +136,6 @@ class Tracker(ABC):
         self.walls = as_walls(walls)
         self.seed = seed
         self.params: dict[str, Any] = {}
-        #: the floor's walkable area (None: unconstrained); set by the session, not stored
-        self.walkable: Walkable | None = None
 
     # -- the filter ---------------------------------------------------------------
     @abstractmethod
@@ -182,17 +177,6 @@ class Tracker(ABC):
     def set_walls(self, walls) -> None:
         """Replace the wall segments (e.g. after a floor change)."""
         self.walls = as_walls(walls)
-
-    def set_walkable(self, walkable: Walkable | None) -> None:
-        """The floor's walkable area from now on (None: no constraint)."""
-        self.walkable = walkable
-
-    def keep_walkable(self, before: np.ndarray | None = None) -> bool:
-        """After a step from ``before``: keep the estimate on the floor plan's side of the walls
-        it crossed; whether it moved. The PF does this per particle as it moves, the seed forms
-        not at all (they stay as the seeds have them); the self-calibrating Gaussian filters
-        override it."""
-        return False
 
     def search_region(self) -> tuple[float, float, float, float] | None:
         """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its

@@ -124,7 +124,7 @@ class EKFXYTracker(_EKFUpdates, Tracker):
 
 
 @register
-class EKFTracker(_EKFUpdates, selfcal.GaussianCalibrating, Tracker):
+class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
     """Self-calibrating EKF, state [x, y, b, s] (heading bias in radians, step scale).
 
     Prediction: x⁻ = f(x, d, h), P⁻ = F P Fᵀ + G diag(σd², σh²) Gᵀ + diag(q, q, σb², σs²)
@@ -191,10 +191,6 @@ class EKFTracker(_EKFUpdates, selfcal.GaussianCalibrating, Tracker):
 
     def inflate(self, factor: float) -> None:
         self.ekf.P = self.state_covariance * float(factor)
-
-    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
-        self.ekf.x, self.ekf.P = x, P
-        self._tidy()
 
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),

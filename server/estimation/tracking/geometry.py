@@ -1,15 +1,11 @@
-"""Wall geometry: segment crossing tests, the wall-side constraint, and a Gaussian
-truncated to a half-plane (how the Kalman-family trackers keep to walkable space).
+"""Wall geometry: segment crossing tests and the wall-side constraint.
 
 Walls are line segments [x1, y1, x2, y2] in site metres (one list per floor).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from scipy.special import erfcx
 
 _EPS = 1e-12
 
@@ -85,56 +81,3 @@ def enforce_side(point, wall, side: float, margin_m: float = 0.05) -> tuple[np.n
     foot = a + float((p - a) @ d) / length2 * d
     normal = np.array([-d[1], d[0]]) / np.sqrt(length2)  # points to the left
     return foot + side * margin_m * normal, True
-
-
-def first_wall_crossed(start, end, walls: np.ndarray, margin_m: float = 0.05) -> tuple[np.ndarray, float] | None:
-    """The first wall the move start → end crosses, as the half-plane on ``start``'s side
-    ``nᵀp ≥ c`` (n the unit normal towards ``start``, c the wall's line pulled ``margin_m``
-    towards start); None when it crosses none."""
-    p0, p1 = np.asarray(start, float), np.asarray(end, float)
-    crossed = np.flatnonzero(segments_cross(p0, p1, np.asarray(walls, float).reshape(-1, 4)))
-    if len(crossed) == 0:
-        return None
-    w = walls[crossed]
-    a, d = w[:, :2], w[:, 2:] - w[:, :2]
-    r = p1 - p0
-    denom = r[0] * d[:, 1] - r[1] * d[:, 0]
-    qp = a - p0
-    t = np.where(np.abs(denom) > _EPS, (qp[:, 0] * d[:, 1] - qp[:, 1] * d[:, 0]) / np.where(denom == 0, 1.0, denom),
-                 0.0)
-    k = int(np.argmin(t))
-    dx, dy = d[k]
-    length = math.hypot(dx, dy)
-    if length < _EPS:
-        return None
-    n = np.array([-dy, dx]) / length
-    offset = float(n @ a[k])
-    if float(n @ p0) < offset:
-        n, offset = -n, -offset
-    return n, offset + margin_m
-
-
-def truncate_halfplane(x: np.ndarray, P: np.ndarray, normal, c: float) -> tuple[np.ndarray, np.ndarray]:
-    """The Gaussian N(x, P) conditioned on nᵀx[:2] ≥ c, moment-matched (PDF truncation,
-    Simon & Simon 2010): the 1-D marginal u = nᵀx[:2] ~ N(μ, σ²) is truncated to u ≥ c, and
-    its new mean and variance are spread over the whole state through P's correlations, so a
-    walker pushed back from a wall also teaches the states that drove it there (heading bias,
-    step scale). ``normal`` must be a unit vector."""
-    n = np.asarray(normal, float).reshape(2)
-    h = np.zeros(len(x))
-    h[:2] = n
-    Ph = P @ h
-    var = float(h @ Ph)
-    if not var > 0.0:
-        return x.copy(), P.copy()
-    sd = math.sqrt(var)
-    mu = float(h @ x)
-    alpha = (c - mu) / sd
-    # λ = φ(α)/(1 − Φ(α)), written with erfcx so it stays finite far into the tail
-    lam = math.sqrt(2.0 / math.pi) / float(erfcx(alpha / math.sqrt(2.0)))
-    new_mu = mu + sd * lam
-    new_var = var * max(1.0 + alpha * lam - lam * lam, 1e-9)
-    k = Ph / var
-    x_new = x + k * (new_mu - mu)
-    P_new = P - np.outer(k, k) * (var - new_var)
-    return x_new, 0.5 * (P_new + P_new.T)

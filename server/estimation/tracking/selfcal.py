@@ -25,11 +25,9 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
-from server.estimation.tracking.geometry import first_wall_crossed, truncate_halfplane
 from server.estimation.types import Step
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
@@ -152,39 +150,3 @@ class Calibrating:
     @property
     def step_scale(self) -> float:
         return float(self.state_mean[3])
-
-
-class GaussianCalibrating(Calibrating):
-    """Mixin of the augmented Kalman-family trackers (ekf, ukf, skpf): one Gaussian over
-    [x, y, b, s], kept to the floor's walkable area by truncation."""
-
-    walkable: Any  # set by Tracker
-    walls: np.ndarray  # set by Tracker
-
-    @property
-    def state_covariance(self) -> np.ndarray:  # pragma: no cover - overridden
-        raise NotImplementedError
-
-    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:  # pragma: no cover - overridden
-        raise NotImplementedError
-
-    def keep_walkable(self, before: np.ndarray | None = None) -> bool:
-        """A step whose mean moved from ``before`` (inside the walkable area, or anywhere when the
-        floor has walls only) across a wall: the Gaussian truncated to the wall's side it came
-        from (``truncate_halfplane`` on the first wall crossed), so the position stays on that
-        side and the heading bias and step scale that drove it into the wall are corrected with
-        it. The first wall crossed, not the nearest boundary: past a thin store the nearest
-        boundary may be the far corridor's."""
-        if before is None or len(self.walls) == 0:
-            return False
-        x = self.state_mean
-        start = np.asarray(before, float).reshape(2)
-        if self.walkable is not None and not self.walkable.contains(start)[0]:
-            return False  # already outside (a fix put it there): the next fixes decide
-        hit = first_wall_crossed(start, x[:2], self.walls)
-        if hit is None:
-            return False
-        normal, c = hit
-        new_x, new_P = truncate_halfplane(x, self.state_covariance, normal, c)
-        self._set_state(new_x, new_P)
-        return True

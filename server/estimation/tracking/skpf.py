@@ -198,7 +198,7 @@ _UPPER4 = tuple((i, k) for i in range(4) for k in range(i, 4))
 
 
 @register
-class SKPFTracker(selfcal.GaussianCalibrating, Tracker):
+class SKPFTracker(selfcal.Calibrating, Tracker):
     """Self-calibrating SKPF, state [x, y, b, s], the same algorithm in four dimensions.
 
     - prediction: the 8 sigma points of the posterior go through ``selfcal.move`` (no
@@ -334,9 +334,6 @@ class SKPFTracker(selfcal.GaussianCalibrating, Tracker):
 
     def inflate(self, factor: float) -> None:
         self.P = self.P * float(factor)
-
-    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
-        self.x, self.P = selfcal.clamp(x), selfcal.symmetric(P)
 
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),

@@ -135,7 +135,7 @@ class UKFXYTracker(_UKFUpdates, Tracker):
 
 
 @register
-class UKFTracker(_UKFUpdates, selfcal.GaussianCalibrating, Tracker):
+class UKFTracker(_UKFUpdates, selfcal.Calibrating, Tracker):
     """Self-calibrating UKF, state [x, y, b, s].
 
     Prediction: Merwe sigma points of [x, y, b, s, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²))
@@ -213,9 +213,6 @@ class UKFTracker(_UKFUpdates, selfcal.GaussianCalibrating, Tracker):
 
     def inflate(self, factor: float) -> None:
         self._set(self.ukf.x, self.ukf.P * float(factor))
-
-    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
-        self._set(x, P)
 
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
