@@ -1,8 +1,10 @@
 """A real server process on a fresh database with one empty one-floor site, for the HTTP
-read benchmarks (``track_pages.py``, ``session_list.py``)."""
+read benchmarks (``track_pages.py``, ``session_list.py``); the server's CPU time, a cost that
+other work on a shared machine does not inflate the way it does wall-clock times."""
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from collections.abc import Iterator
@@ -22,6 +24,13 @@ class BenchSite:
     admin: httpx.Client
     device: httpx.Client
     site_id: int
+    server_pid: int
+
+    def server_cpu_s(self) -> float:
+        """CPU seconds (user + system) the server process has used so far (Linux ``/proc``)."""
+        with open(f"/proc/{self.server_pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 @contextmanager
@@ -38,7 +47,7 @@ def bench_site(port: int, database_url: str | None, name: str) -> Iterator[Bench
                     httpx.Client(base_url=base, headers={"Authorization": f"Bearer {DEVICE}"}, timeout=120) as dev:
                 site = admin.post("/api/v1/sites", json={"name": f"{name}-{time.time_ns()}", "floors": [{"level": 0}]})
                 site.raise_for_status()
-                yield BenchSite(url, admin, dev, site.json()["id"])
+                yield BenchSite(url, admin, dev, site.json()["id"], server.pid)
         finally:
             stop_server(server)
 
