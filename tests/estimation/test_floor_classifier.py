@@ -135,29 +135,24 @@ def test_bad_row_cap_raises():
         KNNModel(floor_classifier_rows=0)
 
 
-class _WrongBuildingSVC:
-    """Stands in for the SVC: always answers group 0 (building 0, floor 0); its decision
-    values rank the groups by index, so building 1's best is its last group."""
+def test_knn_svc_votes_as_the_svc_and_only_among_the_allowed_groups(campus, models):
+    """FloorKNN's NumPy one-vs-one vote: scikit-learn's predict when every group is allowed;
+    restricted to a building, always one of its groups."""
+    from sklearn.svm import SVC
 
-    def __init__(self, n_groups):
-        self.classes_ = np.arange(n_groups)
-
-    def predict(self, X):
-        return np.zeros(len(X), dtype=int)
-
-    def decision_function(self, X):
-        return np.tile(np.arange(len(self.classes_), dtype=float), (len(X), 1))
-
-
-def test_knn_svc_keeps_the_svc_inside_the_knn_building(campus, models):
-    sites, leak, _ = campus
+    sites, leak, fs = campus
     model = models["knn-svc"]
-    scans, truth = _held_out(sites, leak, seed=13)
-    clf = model.floor_clf_
-    stub = FloorKNN(clf.input_encoder, clf.n_rss, clf.k, svc=_WrongBuildingSVC(len(model.group_floor_)))
-    vars(stub).update({k: v for k, v in vars(clf).items() if k.endswith("_")})
-    g = stub.predict(model.encoder_.transform(model.scan_matrix(scans)))
-    b1 = truth[:, 0] == 1
-    assert np.all(g[~b1] == 0)  # the SVC's answer stands when it is in the chosen building
-    last_b1 = int(np.flatnonzero(model.group_building_ == 1).max())
-    assert np.all(g[b1] == last_b1)  # otherwise its best group of the chosen building
+    X = model.encoder_.transform(fs.aligned_rss(model.tx_ids_))
+    row_group = model.rp_group_[model.rp_.row_rp]
+    svc = SVC(C=10.0, gamma="scale").fit(X, row_group)
+    clf = FloorKNN(model.encoder_, X.shape[1]).fit(X, model.rp_.row_rp, model.rp_group_, model.group_building_, svc=svc)
+    scans, truth = _held_out(sites, leak, shift_db=-12.0, seed=17)  # a harder case: more disagreements
+    Q = model.encoder_.transform(model.scan_matrix(scans))
+    n_groups = len(model.group_floor_)
+    assert np.array_equal(clf.svc_groups(Q, np.ones((len(Q), n_groups), dtype=bool)), svc.predict(Q))
+    for b in FLOORS:
+        allowed = np.tile(model.group_building_ == b, (len(Q), 1))
+        assert np.all(model.group_building_[clf.svc_groups(Q, allowed)] == b)
+    one = np.zeros((len(Q), n_groups), dtype=bool)
+    one[:, 2] = True
+    assert np.all(clf.svc_groups(Q, one) == 2)

@@ -71,19 +71,22 @@ class FloorKNN:
     transmitters) whatever the number of fingerprints. Distance: Bray–Curtis (Sørensen).
 
     Building: the ``k`` nearest reference points vote (weights 1/d). Floor: the ``k``
-    nearest of that building vote, or (``svc`` given) that SVC over (building, floor)
-    groups decides among the building's groups — a scan in building 1 never gets a
-    floor of building 0.
+    nearest of that building vote; or, when ``fit`` is given a fitted RBF SVC over the
+    groups, that SVC's one-vs-one vote over the pairs of the building's groups (its
+    ``predict`` when the site has one building), computed here in NumPy from its support
+    vectors (one kernel product per batch, no scikit-learn call per query). Either way a
+    scan in building 1 never gets a floor of building 0.
 
     ``predict`` takes the model's floor design (its encoded RSS in the first ``n_rss``
-    columns, heading columns after them, ignored here) and returns group indices.
+    columns, heading columns after them, which only the SVC uses) and returns group indices.
     """
 
-    def __init__(self, input_encoder: RssEncoder, n_rss: int, k: int = 3, svc=None):
+    BLOCK = 1024  # queries per kernel product (bounded memory)
+
+    def __init__(self, input_encoder: RssEncoder, n_rss: int, k: int = 3):
         self.input_encoder = input_encoder
         self.n_rss = int(n_rss)
         self.k = int(k)
-        self.svc = svc
         self.encoder = RssEncoder("exponential", input_encoder.floor_dbm)
 
     def __getstate__(self) -> dict:
@@ -107,9 +110,12 @@ class FloorKNN:
         V = self.encoder.transform(decode_rss(self.input_encoder, np.asarray(design)[:, : self.n_rss]))
         return V / np.maximum(V.sum(axis=1, keepdims=True), np.float32(1e-12))
 
-    def fit(self, design: np.ndarray, row_rp: np.ndarray, rp_group: np.ndarray, group_building: np.ndarray) -> Self:
+    def fit(self, design: np.ndarray, row_rp: np.ndarray, rp_group: np.ndarray, group_building: np.ndarray,
+            svc=None) -> Self:
         """design: (n, ≥ n_rss) rows; row_rp: each row's reference point; rp_group: each
-        reference point's (building, floor) group; group_building: each group's building."""
+        reference point's (building, floor) group; group_building: each group's building;
+        svc: an optional fitted sklearn RBF SVC over group indices (only its support
+        vectors, coefficients and intercepts are kept)."""
         from scipy import sparse
 
         n_rp, n = len(rp_group), len(row_rp)
@@ -124,7 +130,29 @@ class FloorKNN:
         self.rp_group_ = np.asarray(rp_group, dtype=np.int64)
         self.group_building_ = np.asarray(group_building)
         self.rp_building_ = self.group_building_[self.rp_group_]
+        self.sv_ = None
+        if svc is not None:
+            self._keep_svc(svc)
         return self
+
+    def _keep_svc(self, svc) -> None:
+        """libsvm's one-vs-one decision for classes i < j is Σ_{SV of i} α_{j−1} K +
+        Σ_{SV of j} α_i K + b, positive = a vote for i: one (support vectors × pairs)
+        coefficient matrix turns the kernel row into every pair's decision."""
+        start = np.concatenate([[0], np.cumsum(svc.n_support_)])
+        pairs = [(i, j) for i in range(len(svc.classes_)) for j in range(i + 1, len(svc.classes_))]
+        coef = np.asarray(svc._dual_coef_)  # libsvm's signs (dual_coef_ flips them for two classes)
+        W = np.zeros((len(svc.support_vectors_), len(pairs)))
+        for p, (i, j) in enumerate(pairs):
+            W[start[i]: start[i + 1], p] = coef[j - 1, start[i]: start[i + 1]]
+            W[start[j]: start[j + 1], p] = coef[i, start[j]: start[j + 1]]
+        self.sv_ = np.asarray(svc.support_vectors_, dtype=np.float64)
+        self.sv_sq_ = (self.sv_**2).sum(axis=1)
+        self.gamma_ = float(svc._gamma)
+        self.pair_coef_, self.pair_b_ = W, np.asarray(svc._intercept_, dtype=np.float64)
+        classes = np.asarray(svc.classes_, dtype=np.int64)
+        self.pair_i_ = classes[[i for i, _ in pairs]]
+        self.pair_j_ = classes[[j for _, j in pairs]]
 
     def distances(self, design: np.ndarray) -> np.ndarray:
         """(nq, n_rp) Bray–Curtis distances from scans to the reference points."""
@@ -151,6 +179,26 @@ class FloorKNN:
                   np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0))
         return values[np.argmax(votes, axis=1)]
 
+    def svc_groups(self, design: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+        """Per query, the group with the most one-vs-one votes of the SVC over the pairs of
+        ``allowed`` (nq, groups) groups (ties: the lower index, as libsvm); a query whose
+        allowed groups the SVC never saw gets its first allowed group."""
+        X = np.asarray(design, dtype=np.float64)
+        n_groups = allowed.shape[1]
+        to_i = np.zeros((len(self.pair_i_), n_groups))
+        to_i[np.arange(len(self.pair_i_)), self.pair_i_] = 1.0
+        to_j = np.zeros_like(to_i)
+        to_j[np.arange(len(self.pair_j_)), self.pair_j_] = 1.0
+        out = np.empty(len(X), dtype=np.int64)
+        for s in range(0, len(X), self.BLOCK):
+            x, ok = X[s: s + self.BLOCK], allowed[s: s + self.BLOCK]
+            d2 = (x**2).sum(axis=1)[:, None] + self.sv_sq_[None, :] - 2.0 * (x @ self.sv_.T)
+            dec = np.exp(-self.gamma_ * np.maximum(d2, 0.0)) @ self.pair_coef_ + self.pair_b_
+            both = ok[:, self.pair_i_] & ok[:, self.pair_j_]
+            votes = ((dec > 0) & both) @ to_i + ((dec <= 0) & both) @ to_j
+            out[s: s + self.BLOCK] = np.argmax(np.where(ok, votes, -np.inf), axis=1)
+        return out
+
     def predict(self, design: np.ndarray) -> np.ndarray:
         design = np.atleast_2d(design)
         if not len(design):
@@ -158,21 +206,9 @@ class FloorKNN:
         D = self.distances(design)
         b = self._vote(D, self.rp_building_)
         in_b = self.group_building_[None, :] == b[:, None]  # (nq, groups)
-        if self.svc is None:
+        if self.sv_ is None:
             return self._vote(np.where(in_b[:, self.rp_group_], D, np.inf), self.rp_group_)
-        g = np.asarray(self.svc.predict(design), dtype=np.int64)
-        other = np.flatnonzero(self.group_building_[g] != b)  # the SVC's floor is in another building
-        if len(other):  # the SVC's best group of the chosen building (decision_function: slower)
-            dec = self.svc.decision_function(design[other])
-            if dec.ndim == 1:  # two classes: the sign picks classes_[1]
-                dec = np.column_stack([-dec, dec])
-            scores = np.full((len(other), in_b.shape[1]), -np.inf)
-            scores[:, self.svc.classes_] = dec
-            scores = np.where(in_b[other], scores, -np.inf)
-            none = ~np.isfinite(scores).any(axis=1)  # the SVC never saw this building's groups
-            scores[none] = np.where(in_b[other][none], 0.0, -np.inf)
-            g[other] = np.argmax(scores, axis=1)
-        return g
+        return self.svc_groups(design, in_b)
 
 
 class UnknownTransmittersError(ValueError):
@@ -349,7 +385,7 @@ class FingerprintModel:
             clf = SVC(C=10.0, gamma="scale").fit(sample, labels)
             if self.floor_classifier == "svc":
                 return clf
-        return FloorKNN(self.encoder_, X.shape[1], svc=clf).fit(X, data.rp.row_rp, self.rp_group_, self.group_building_)
+        return FloorKNN(self.encoder_, X.shape[1]).fit(X, data.rp.row_rp, self.rp_group_, self.group_building_, svc=clf)
 
     def _auto_cov_floor(self) -> float:
         spacings = []
