@@ -16,8 +16,10 @@ between them, from a radio map interpolated over the floor:
    fingerprints, so a scan where someone surveyed still finds its point) and the cells.
 2. **Query.** The ``k`` nearest of them on the chosen floor in feature space (Sørensen
    distance, as wknn's) vote with weights 1/d^``weight_power``: the posterior, reduced
-   to a fix and covariance as for every model (posterior.py). The floor comes from the base class's
-   floor classifier (the only part that uses the heading: the map has none).
+   to a fix and covariance as for every model (posterior.py). The floor comes from the
+   base class's floor classifier, extra trees by default (the only part that uses the
+   heading: the map has none). On UJIIndoorLoc's choosing users (ℓ = 6 m, k = 5): mean
+   10.7 m with the trees, 11.0 m with the model's own posterior mass, 17.1 m with the SVC.
 3. **Choices.** ``length_scale_m`` and ``k`` (when None) are chosen by an internal
    cross-validation that holds out whole survey walks (devices, when each point was
    surveyed by one of at least 3), else whole reference points, and locates their scans
@@ -90,8 +92,8 @@ class RadioMapModel(FingerprintModel):
     def __init__(self, length_scale_m: float | None = None, length_grid: tuple[float, ...] = (3.0, 4.0, 6.0, 8.0, 12.0),
                  grid_m: float = 2.0, reach_m: float = 6.0, k: int | None = None,
                  k_grid: tuple[int, ...] = (3, 5, 9, 15, 25), weight_power: float = 8.0, calibrate: bool = True,
-                 cv_rows: int = 1500, missing: str = "powed", **common):
-        super().__init__(missing=missing, **common)
+                 cv_rows: int = 1500, missing: str = "powed", floor_classifier: str | None = "trees", **common):
+        super().__init__(missing=missing, floor_classifier=floor_classifier, **common)
         self.length_scale_m = None if length_scale_m is None else float(length_scale_m)
         self.length_grid = tuple(float(v) for v in length_grid)
         self.grid_m = float(grid_m)
