@@ -328,7 +328,7 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
 
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
-                        interval_s: float) -> dict:
+                        interval_s: float, smoothed: bool = False) -> dict:
     w = p.walk
     init = None
     if initial:
@@ -344,10 +344,14 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
         e = res["estimate"]
         batch_rows.append((e["t"], e["x"], e["y"]))
     track = await device.get_track(session["id"])
+    after = await device.get_track(session["id"], smoothed=True) if smoothed else None
     await device.close_session(session["id"])
-    return {"session_id": session["id"], "batches": len(batches),
-            "track": errors_against(w, [(e["t"], e["x"], e["y"]) for e in track if e.get("source") != "init"]),
-            "batch_estimates": errors_against(w, batch_rows)}
+
+    def scored(rows: list[dict]) -> list[dict]:
+        return errors_against(w, [(e["t"], e["x"], e["y"]) for e in rows if e.get("source") != "init"])
+
+    return {"session_id": session["id"], "batches": len(batches), "track": scored(track),
+            "smoothed": None if after is None else scored(after), "batch_estimates": errors_against(w, batch_rows)}
 
 
 @dataclass
@@ -368,6 +372,8 @@ class Options:
     #: floor plan variants to replay every filter on (``PLANS``), and the stores' margin (m)
     plans: tuple[str, ...] = ("none",)
     plan_margin_m: float = 0.0
+    #: also score each session's smoothed track (``GET …/track?smoothed=true``) as "<name> smoothed"
+    smoothed: bool = False
 
 
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
@@ -430,7 +436,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                         break
                     name = (flt if init else f"{flt} (no initial)") + ("" if plan == "none" else f" [plan: {plan}]")
                     try:
-                        res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s)
+                        res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s,
+                                                  opt.smoothed)
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -438,6 +445,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                             break
                         raise
                     methods[name] = res["track"]
+                    if res["smoothed"] is not None:
+                        methods[f"{name} smoothed"] = res["smoothed"]
             methods = {k: [r for r in v if r["t"] > eval_from] for k, v in methods.items()}
             n_steps = int(((p.events.t > w.t_start) & (p.events.t <= w.t_end)).sum())
             true_len = float(np.linalg.norm(np.diff(w.waypoints[:, 1:], axis=0), axis=1).sum())
@@ -532,7 +541,7 @@ def main(a) -> int:
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
                   fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
-                  plan_margin_m=float(getattr(a, "plan_margin", 0.0)))
+                  plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)))
     for variant in opt.plans:
         if variant not in PLANS:
             raise CliError(f"unknown --plan {variant!r} (comma list of {', '.join(PLANS)})", EXIT_USAGE)

@@ -85,3 +85,21 @@ def test_a_building_change_at_the_same_level_splits_the_track_and_keeps_each_bui
     smoothed = smooth_track(track)
     assert [e.building for e in smoothed] == [e.building for e in track]
     assert (smoothed[cut - 1].x, smoothed[cut - 1].y) == (track[cut - 1].x, track[cut - 1].y)
+
+
+def test_a_cloud_that_shrinks_in_a_step_does_not_blow_the_smoothed_track_up():
+    """A PF's step can shrink its covariance (walls kill the particles on one side). Read as
+    negative process noise, that would give an RTS gain above 1, amplifying backwards; the
+    smoother drops the negative part, so no smoothed position leaves the filtered ones' span."""
+    track = [Estimate.of(0.0, np.array([0.0, 0.0]), np.eye(2), 0, "init")]
+    rng = np.random.default_rng(4)
+    for k in range(1, 40):
+        x = np.array([0.7 * k, 0.0]) + rng.normal(0.0, 0.3, 2)
+        track.append(Estimate.of(float(k), x, np.eye(2) * 0.5, 0, "step"))  # shrank from 1.0
+        track.append(Estimate.of(k + 0.5, x + rng.normal(0.0, 0.3, 2), np.eye(2), 0, "scan"))
+    smoothed = smooth_track(track)
+    xs = np.array([[e.x, e.y] for e in track])
+    for e in smoothed:
+        assert xs[:, 0].min() - 3.0 <= e.x <= xs[:, 0].max() + 3.0
+        assert xs[:, 1].min() - 3.0 <= e.y <= xs[:, 1].max() + 3.0
+        assert np.all(np.linalg.eigvalsh(np.array(e.covariance)) > 0)

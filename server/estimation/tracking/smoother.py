@@ -19,7 +19,8 @@ new interval. Nothing here needs the tracker: it runs on what the server stores.
 
 So it needs neither the filter's kind nor the steps and fixes themselves: the process noise
 of step k is read off the stored covariances, Q_k = P_{k+1|k} − P_{k|k} (the growth from the
-filtered estimate to the next step's prediction), and each fix enters through the scan
+filtered estimate to the next step's prediction, its negative part dropped: a PF's cloud may
+shrink in a step where walls kill particles, ``_predicted_cov``), and each fix enters through the scan
 estimate it produced (a refused fix moved nothing there, so it moves nothing here either).
 ``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
 """
@@ -43,6 +44,16 @@ def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
     if track:
         out.append((start, len(track)))
     return out
+
+
+def _predicted_cov(P: np.ndarray, Pp: np.ndarray) -> np.ndarray:
+    """P_{k+1|k} with the step's process noise Q_k = P_{k+1|k} − P_{k|k} kept positive
+    semi-definite (its negative eigenvalues set to 0). A Kalman filter's prediction only grows
+    P, so its tracks are unchanged; a particle filter's cloud can shrink in a step (particles
+    killed by a wall), and a gain C = P_{k|k} P_{k+1|k}⁻¹ above 1 would then amplify the
+    differences going backwards, step after step (hundreds of metres on real walks)."""
+    w, V = np.linalg.eigh(0.5 * ((Pp - P) + (Pp - P).T))
+    return P + (V * np.maximum(w, 0.0)) @ V.T + 1e-12 * np.eye(len(P))
 
 
 def smooth_track(track: Sequence[Estimate]) -> list[Estimate]:
@@ -70,7 +81,7 @@ def smooth_track(track: Sequence[Estimate]) -> list[Estimate]:
         for k in range(n - 2, -1, -1):
             nxt = track[first[k + 1]]
             xp = np.array([nxt.x, nxt.y])
-            Pp = np.array(nxt.covariance, float)
+            Pp = _predicted_cov(Ps[k], np.array(nxt.covariance, float))
             C = Ps[k] @ np.linalg.inv(Pp)
             x_s[k] = xs[k] + C @ (x_s[k + 1] - xp)
             P = Ps[k] + C @ (P_s[k + 1] - Pp) @ C.T
