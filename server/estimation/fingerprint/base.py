@@ -74,7 +74,7 @@ class FloorKNN:
     nearest of that building vote; or, when ``fit`` is given a fitted RBF SVC over the
     groups, that SVC's one-vs-one vote over the pairs of the building's groups (its
     ``predict`` when the site has one building), computed here in NumPy from its support
-    vectors (one kernel product per batch, no scikit-learn call per query). Either way a
+    vectors (one sparse kernel product per batch, no scikit-learn call per query). Either way a
     scan in building 1 never gets a floor of building 0.
 
     ``predict`` takes the model's floor design (its encoded RSS in the first ``n_rss``
@@ -89,21 +89,25 @@ class FloorKNN:
         self.k = int(k)
         self.encoder = RssEncoder("exponential", input_encoder.floor_dbm)
 
+    SPARSE_STATE = {"MT_": np.float32, "sv_": np.float64}  # mostly-zero matrices, stored sparse
+
     def __getstate__(self) -> dict:
-        """Artifacts store the mostly-zero reference-point matrix sparse."""
+        """Artifacts store the reference-point means and the support vectors sparse."""
         from scipy import sparse
 
         state = dict(vars(self))
-        if isinstance(state.get("MT_"), np.ndarray):
-            state["MT_"] = sparse.csr_matrix(state["MT_"])
+        for key in self.SPARSE_STATE:
+            if isinstance(state.get(key), np.ndarray):
+                state[key] = sparse.csr_matrix(state[key])
         return state
 
     def __setstate__(self, state: dict) -> None:
         from scipy import sparse
 
         state = dict(state)
-        if sparse.issparse(state.get("MT_")):
-            state["MT_"] = np.ascontiguousarray(state["MT_"].toarray(), dtype=np.float32)
+        for key, dtype in self.SPARSE_STATE.items():
+            if sparse.issparse(state.get(key)):
+                state[key] = np.ascontiguousarray(state[key].toarray(), dtype=dtype)
         vars(self).update(state)
 
     def _features(self, design: np.ndarray) -> np.ndarray:
@@ -146,8 +150,9 @@ class FloorKNN:
         for p, (i, j) in enumerate(pairs):
             W[start[i]: start[i + 1], p] = coef[j - 1, start[i]: start[i + 1]]
             W[start[j]: start[j + 1], p] = coef[i, start[j]: start[j + 1]]
-        self.sv_ = np.asarray(svc.support_vectors_, dtype=np.float64)
-        self.sv_sq_ = (self.sv_**2).sum(axis=1)
+        sv = np.asarray(svc.support_vectors_, dtype=np.float64)
+        self.sv_ = np.ascontiguousarray(sv.T)  # (features, support vectors): a feature's row contiguous
+        self.sv_sq_ = (sv**2).sum(axis=1)
         self.gamma_ = float(svc._gamma)
         self.pair_coef_, self.pair_b_ = W, np.asarray(svc._intercept_, dtype=np.float64)
         classes = np.asarray(svc.classes_, dtype=np.int64)
@@ -183,6 +188,8 @@ class FloorKNN:
         """Per query, the group with the most one-vs-one votes of the SVC over the pairs of
         ``allowed`` (nq, groups) groups (ties: the lower index, as libsvm); a query whose
         allowed groups the SVC never saw gets its first allowed group."""
+        from scipy import sparse
+
         X = np.asarray(design, dtype=np.float64)
         n_groups = allowed.shape[1]
         to_i = np.zeros((len(self.pair_i_), n_groups))
@@ -192,7 +199,8 @@ class FloorKNN:
         out = np.empty(len(X), dtype=np.int64)
         for s in range(0, len(X), self.BLOCK):
             x, ok = X[s: s + self.BLOCK], allowed[s: s + self.BLOCK]
-            d2 = (x**2).sum(axis=1)[:, None] + self.sv_sq_[None, :] - 2.0 * (x @ self.sv_.T)
+            cross = np.asarray(sparse.csr_matrix(x) @ self.sv_)  # a scan hears few transmitters
+            d2 = (x**2).sum(axis=1)[:, None] + self.sv_sq_[None, :] - 2.0 * cross
             dec = np.exp(-self.gamma_ * np.maximum(d2, 0.0)) @ self.pair_coef_ + self.pair_b_
             both = ok[:, self.pair_i_] & ok[:, self.pair_j_]
             votes = ((dec > 0) & both) @ to_i + ((dec <= 0) & both) @ to_j
