@@ -221,7 +221,7 @@ def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[Fingerp
 
 
 def stream_training_rows(
-    s: Session, site_id: int, include_crowd: bool, chunk: int = 2000,
+    s: Session, site_id: int, include_crowd: bool, chunk: int = 500,
 ) -> Iterator[FingerprintRecord]:
     """The site's fingerprints (survey ones only, unless ``include_crowd``) with their reference point's
     label, in id order, fetched ``chunk`` rows at a time (a server-side cursor on PostgreSQL): a large
