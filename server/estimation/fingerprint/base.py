@@ -134,7 +134,7 @@ class FloorKNN:
         self.rp_group_ = np.asarray(rp_group, dtype=np.int64)
         self.group_building_ = np.asarray(group_building)
         self.rp_building_ = self.group_building_[self.rp_group_]
-        self.sv_ = None
+        self.sv_: np.ndarray | None = None
         if svc is not None:
             self._keep_svc(svc)
         return self
