@@ -9,8 +9,9 @@ child process, as the server's worker runs it); the peak resident memory is that
 child's (``getrusage(RUSAGE_CHILDREN)``); the artifact size is the stored blob's. Each
 size runs in its own process, so nothing is shared between sizes.
 
-Printed: a row per size and the growth ratios 100k/20k (time, memory) against the
-targets (≤ 5× and ≤ 1 GB at 100k; 20k ≤ 10 s for the default model).
+Printed: a row per size, the growth law between the two largest sizes (time's exponent,
+peak memory as a base plus a cost per fingerprint) and the growth ratios 100k/20k (time,
+memory) against the targets (≤ 5× and ≤ 1 GB at 100k; 20k ≤ 10 s for the default model).
 
     .venv/bin/python -m benchmarks.training_scale [--data ../shared/data/ujiindoorloc]
         [--sizes 1000,5000,20000,100000] [--algorithm wknn] [--params '{}']
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import multiprocessing
 import resource
 import subprocess
@@ -135,6 +137,13 @@ def main(argv=None) -> int:
               f"{r['mean_error_m'] or float('nan'):.2f} | {pct(r['floor_hit_rate'])} | {pct(r['building_hit_rate'])} "
               f"| {r['validated_on']} |", flush=True)
     by_n = {r["n"]: r for r in rows}
+    if len(rows) >= 2:  # from the two largest sizes
+        small, large = sorted(rows, key=lambda r: r["n"])[-2:]
+        exponent = math.log(large["seconds"] / small["seconds"]) / math.log(large["n"] / small["n"])
+        per_fp_kb = (large["peak_mb"] - small["peak_mb"]) * 1024 / (large["n"] - small["n"])
+        base_mb = large["peak_mb"] - per_fp_kb * large["n"] / 1024
+        print(f"growth law ({small['n']:,} → {large['n']:,}): time ∝ n^{exponent:.2f}; "
+              f"peak ≈ {base_mb:.0f} MB + {per_fp_kb:.1f} KB per fingerprint")
     if 20000 in by_n and 100000 in by_n:
         big, mid = by_n[100000], by_n[20000]
         print(f"growth 100k/20k: time {big['seconds'] / mid['seconds']:.2f}× (target ≤ 5×), "

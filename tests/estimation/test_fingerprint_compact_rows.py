@@ -67,3 +67,16 @@ def test_a_float16_training_set_fits_exactly_like_a_float32_one(algorithm):
     scans = f32.scans()[::5]
     pa, pb = a.predict(scans), b.predict(scans)
     assert np.array_equal(pa.xy, pb.xy) and np.array_equal(pa.covariance, pb.covariance)
+
+
+def test_blocks_of_rows_fill_the_same_matrix(monkeypatch):
+    from server.estimation.fingerprint import dataset
+
+    odd = [*ROWS, {"x": 0, "y": 0, "floor": 0, "rss": {"wifi:a": -67.3, "wifi:c": -80}}]
+    whole = {dt: FingerprintSet.from_rows(odd, dtype=dt) for dt in (float, np.float16)}
+    monkeypatch.setattr(dataset, "FILL_ROWS", 2)
+    monkeypatch.setattr(dataset, "FILL_READINGS", 3)  # the reading that is no float16 is in the last check
+    for dt, fs in whole.items():
+        blocks = FingerprintSet.from_rows(once(odd), dtype=dt)
+        assert blocks.rss.dtype == fs.rss.dtype and np.array_equal(blocks.rss, fs.rss, equal_nan=True)
+    assert whole[np.float16].rss.dtype == np.float32

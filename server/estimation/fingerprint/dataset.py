@@ -23,6 +23,16 @@ def tx_kind(tx_id: str) -> str:
     return tx_id.split(":", 1)[0]
 
 
+#: rows `FingerprintSet.from_rows` writes into its matrix at once, and readings it checks at once
+FILL_ROWS, FILL_READINGS = 4096, 1 << 16
+
+
+def _float16_exact(dbm: np.ndarray) -> bool:
+    """Whether every reading's float32 value is exactly a float16 (NaN equal to NaN)."""
+    as32 = dbm.astype(np.float32)
+    return bool(np.array_equal(as32.astype(np.float16).astype(np.float32), as32, equal_nan=True))
+
+
 def _obj_array(values: Iterable | None, n: int) -> np.ndarray:
     out = np.empty(n, dtype=object)
     if values is not None:
@@ -143,7 +153,7 @@ class FingerprintSet:
 
         The rows are read once and never kept (an iterator streamed from the store is held
         one row at a time): each reading goes into flat arrays (12 bytes) and the matrix is
-        filled at the end. ``dtype``: float (default); ``np.float32`` halves the matrix;
+        filled at the end, a block of rows at a time. ``dtype``: float (default); ``np.float32`` halves the matrix;
         ``np.float16`` (the server's training) quarters it when every reading is exactly a
         float16 — whole dBm are — and is float32 otherwise, so the values are float32's."""
         fixed = tx_ids is not None
@@ -181,20 +191,22 @@ class FingerprintSet:
             for key, value in (("building", b), ("t", t), ("user", user), ("device", device)):
                 given[key] = given[key] or value is not None
         names = list(tx_ids) if tx_ids is not None else sorted(col)
-        column: np.ndarray = np.frombuffer(cols, dtype=np.int32)
-        if not fixed:  # columns were numbered as first heard: renumber in sorted order
-            renumber = np.empty(len(names), dtype=np.intp)
+        renumber = np.arange(len(names))  # the columns were numbered as first heard: their sorted order
+        if not fixed:
             renumber[[col[tx] for tx in names]] = np.arange(len(names))
-            column = renumber[column]
-        v = np.frombuffer(values, dtype=np.float64)
+        count = np.frombuffer(heard, dtype=np.int32)
+        end = np.cumsum(count, dtype=np.int64)
+        column, v = np.frombuffer(cols, dtype=np.int32), np.frombuffer(values, dtype=np.float64)
         target: np.dtype = np.dtype(dtype)
-        if target != np.float64:
-            v = v.astype(np.float32)
-            if target == np.float16 and not np.array_equal(v.astype(np.float16).astype(np.float32), v, equal_nan=True):
-                target = np.dtype(np.float32)
+        if target == np.float16 and not all(_float16_exact(v[a: a + FILL_READINGS]) for a in range(0, len(v), FILL_READINGS)):
+            target = np.dtype(np.float32)
         n = len(xs)
         rss: np.ndarray = np.full((n, len(names)), np.nan, dtype=target)
-        rss[np.repeat(np.arange(n), np.frombuffer(heard, dtype=np.int32)), column] = v
+        for r0 in range(0, n, FILL_ROWS):  # in blocks: the temporaries stay small whatever n
+            r1 = min(r0 + FILL_ROWS, n)
+            a, b = int(end[r0] - count[r0]), int(end[r1 - 1])
+            rss[np.repeat(np.arange(r0, r1), count[r0:r1]), renumber[column[a:b]]] = \
+                v[a:b] if target == np.float64 else v[a:b].astype(np.float32)
         return cls(
             rss=rss,
             tx_ids=names,
