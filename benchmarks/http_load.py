@@ -43,10 +43,9 @@ async def closed_loop(session: aiohttp.ClientSession, request: Callable[[int], t
     return time.perf_counter() - started, latencies
 
 
-def cpu_seconds(pid: int) -> float | None:
-    """CPU time (user + system) used so far by process ``pid`` and its children, from
-    /proc (None where there is no /proc): a server's cost per request, unlike its
-    throughput, does not move with the rest of the machine's load."""
+def _cpu_of(keep) -> float | None:
+    """CPU time (user + system, s) of the processes for which ``keep(pid, parent_pid, name)``
+    holds, from /proc (None where there is no /proc)."""
     try:
         tick = os.sysconf("SC_CLK_TCK")
         total = 0.0
@@ -55,11 +54,24 @@ def cpu_seconds(pid: int) -> float | None:
                 continue
             try:
                 with open(f"/proc/{entry}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
+                    head, rest = f.read().rsplit(")", 1)
             except OSError:
                 continue
-            if int(entry) == pid or int(fields[1]) == pid:  # fields[1]: parent pid
+            fields = rest.split()
+            if keep(int(entry), int(fields[1]), head.split("(", 1)[-1]):  # fields[1]: parent pid
                 total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
         return total
     except (OSError, ValueError):
         return None
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time used so far by process ``pid`` and its children: a server's cost per
+    request, unlike its throughput, does not move with the rest of the machine's load."""
+    return _cpu_of(lambda p, parent, _: p == pid or parent == pid)
+
+
+def database_cpu_seconds() -> float | None:
+    """CPU time used so far by every PostgreSQL process on this machine (its backends are the
+    postmaster's children, not the server's): what a batch costs the database."""
+    return _cpu_of(lambda _p, _parent, name: name == "postgres")

@@ -2,6 +2,8 @@
 
     python benchmarks/sessions_load.py --phones 200 --seconds 30
     python benchmarks/sessions_load.py --phones 1000 --seconds 60 --workers 2
+    python benchmarks/sessions_load.py --phones 300 --seconds 20 --workers 2 \
+        --database-url postgresql+psycopg://postgres@127.0.0.1/loadbench
 
 Starts ``python -m server serve`` on a fresh SQLite file (or ``--database-url``), creates
 a synthetic site (survey + a trained knn model), opens one session per phone with a
@@ -15,7 +17,9 @@ stored data: every session has exactly one stored answer per posted seq and exac
 First, closed loop from the same client: the server's capacity for batches, and the
 baseline, its capacity for its cheapest database-backed request (``GET /healthz``); the
 ratio says how close batches come to what this machine's HTTP stack can carry at all
-and, unlike either figure, hardly moves with whatever else the machine is doing.
+and, unlike either figure, hardly moves with whatever else the machine is doing. The CPU
+time per batch (the server's processes, and on PostgreSQL the database's too) gives the
+figure per core: how many phones at one batch a second one core carries.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from sqlalchemy import create_engine, text
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.http_load import client, closed_loop, cpu_seconds  # noqa: E402
+from benchmarks.http_load import client, closed_loop, cpu_seconds, database_cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from tests.helpers.synthetic import make_site  # noqa: E402
 
@@ -139,14 +143,16 @@ async def capacities(base: str, server_pid: int, site_id: int, synth, filter: st
                     await r.read()
                     r.raise_for_status()
 
-        cpu2 = cpu_seconds(server_pid)
+        cpu2, db2 = cpu_seconds(server_pid), database_cpu_seconds()
         began = time.perf_counter()
         await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks, strict=True)))
         batches_per_s = per_phone * concurrency / (time.perf_counter() - began)
-        cpu3 = cpu_seconds(server_pid)
-    per_request = None if cpu0 is None else ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / (per_phone * concurrency) * 1e3)
+        cpu3, db3 = cpu_seconds(server_pid), database_cpu_seconds()
+    n = per_phone * concurrency
+    per_request = None if cpu0 is None else ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / n * 1e3)
+    db_ms = None if db2 is None or db3 is None else (db3 - db2) / n * 1e3
     return {"healthz_per_s": healthz_per_s, "batches_per_s": batches_per_s, "cpu_ms": per_request,
-            "sessions": [(sid, per_phone) for sid in sessions]}
+            "db_cpu_ms": db_ms, "sessions": [(sid, per_phone) for sid in sessions]}
 
 
 async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str):
@@ -211,6 +217,14 @@ def main() -> None:
             healthz_ms, batch_ms = cap["cpu_ms"]
             print(f"server CPU per request: batch {batch_ms:.2f} ms, healthz {healthz_ms:.2f} ms; "
                   f"ratio {batch_ms / healthz_ms:.2f}")
+            on_postgres = url.startswith("postgresql")
+            db_ms = cap["db_cpu_ms"] if on_postgres else 0.0  # SQLite's CPU is the server's
+            if on_postgres and db_ms is not None:
+                print(f"PostgreSQL CPU per batch: {db_ms:.2f} ms (every postgres process on this machine)")
+            if db_ms is not None:
+                total = batch_ms + db_ms
+                print(f"per core: {1000.0 / total:.0f} phones at one batch a second (server + database CPU "
+                      f"{total:.2f} ms per batch); 1,000 phones need {total:.1f} cores")
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
               f"{url.split(':')[0]}): {n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
               f"(offered {args.phones}/s)")
