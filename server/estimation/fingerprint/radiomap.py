@@ -36,7 +36,10 @@ rebuilt, identically, when the model is loaded.
 Measured on the MSFT site-1 F1 walks (``client_sim msft --folds 4``; the encoding,
 grids, reach and weight power chosen on folds 0–1 with benchmarks/radiomap_msft.py),
 reported on folds 2–3 through the API: fingerprinting alone 11.30 m mean, p90 26.9 m,
-against wknn 13.59 / 35.6 and knn 15.42 / 41.7 (medians alike, 7.9–8.2 m). Trackers
+against wknn 13.59 / 35.6 and knn 15.42 / 41.7 (medians alike, 7.9–8.2 m) — with the
+ℓ = 12 m, k = 25 the training step's split chose; fitted in process on all map walks
+the cross-validation chose ℓ = 4–6 m and gave 12.88 m against wknn's 13.07 (on ~30
+walks the choice is noisy: benchmarks/radiomap_msft.py --folds 2,3). Trackers
 fed its fixes were not better there (pf 3.61 m against 3.32 with knn's fixes, which the
 training step's calibration trusts far less), though they were on folds 0–1 (pf 4.51
 against 4.77). On UJIIndoorLoc (dense; the reporting users of
