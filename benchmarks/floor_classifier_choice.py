@@ -8,7 +8,9 @@ it). UJIIndoorLoc users are split as in benchmarks/fingerprint_choice.py:
   classifier is picked here;
 - ``report``: trained on users outside REPORT, measured once on REPORT;
 - ``phones``: the phones ``localizer_tools.evaluate --split phone --seed 0`` holds out
-  (about 20 % of the rows), trained on the rest — not used for choosing either.
+  (about 20 % of the rows), trained on the rest — not used for choosing either;
+- ``lou``: each user outside CHOOSE ∪ REPORT held out in turn, trained on the others
+  of them (users never held out by the choice nor the report), pooled.
 
 Columns: floor hit (building and floor right), split into *covered* test scans (a
 training fingerprint of the same floor within 5 m) and *uncovered* ones (the held-out
@@ -129,9 +131,9 @@ def _clf_bytes(model) -> int:
         model.floor_clf_ = clf
 
 
-def run(name: str, train: FingerprintSet, test: FingerprintSet, cov: np.ndarray, base=None):
-    """One candidate's row (costs against ``base``, the SVC's model; itself when None)
-    and its fitted model."""
+def run(name: str, train: FingerprintSet, test: FingerprintSet, cov: np.ndarray, base=None, timed: bool = True):
+    """One candidate's row (costs against ``base``, the SVC's model, itself when None;
+    none unless ``timed``) and its fitted model."""
     algo, params = CANDIDATES[name]
     model = make_model(algo, params).fit(train)
     R = test.aligned_rss(model.tx_ids_)
@@ -145,7 +147,8 @@ def run(name: str, train: FingerprintSet, test: FingerprintSet, cov: np.ndarray,
         "building": np.mean(pred.building == test.building),
         "mean_m": float(np.mean(np.hypot(pred.x - test.x, pred.y - test.y))), "bytes": _clf_bytes(model),
     }
-    row.update(costs(model, model if base is None else base, train, R))
+    if timed:
+        row.update(costs(model, model if base is None else base, train, R))
     return row, model
 
 
@@ -203,20 +206,45 @@ def scale(fs: FingerprintSet, names: list[str]) -> None:
         print(f"| {name} | {t[0]:.2f} | {t[1]:.2f} | {t[1] / t[0]:.2f} |", flush=True)
 
 
+def leave_one_user_out(fs: FingerprintSet, names: list[str]) -> None:
+    """Each user outside CHOOSE ∪ REPORT held out in turn, trained on the others outside
+    CHOOSE ∪ REPORT; hits pooled over the folds (no costs)."""
+    user = fs.user.astype(int)
+    pool = np.unique(user[~np.isin(user, list(CHOOSE | REPORT))])
+    folds = []
+    for u in pool:
+        train, test = fs.subset(~np.isin(user, list(CHOOSE | REPORT | {int(u)}))), fs.subset(user == u)
+        folds.append((train, test, covered(train, test)))
+    n = sum(len(t) for _, t, _ in folds)
+    cov_all = np.concatenate([c for _, _, c in folds])
+    print(f"## lou: each of users {pool.tolist()} held out in turn, trained on the others of them; "
+          f"{n} test scans pooled ({100 * cov_all.mean():.0f} % covered)\n{HEAD}", flush=True)
+    for name in names:
+        rows = [run(name, train, test, cov, timed=False)[0] for train, test, cov in folds]
+        w = np.array([len(t) for _, t, _ in folds], dtype=float)
+        wc = np.array([c.sum() for _, _, c in folds], dtype=float)
+        pooled = {"name": name, "bytes": float(np.mean([r["bytes"] for r in rows]))}
+        for key in ("floor", "shifted", "building", "mean_m"):
+            pooled[key] = float(np.dot(w, [r[key] for r in rows]) / w.sum())
+        pooled["covered"] = float(np.nansum(wc * [r["covered"] for r in rows]) / wc.sum())
+        pooled["uncovered"] = float(np.nansum((w - wc) * [r["uncovered"] for r in rows]) / (w - wc).sum())
+        print(line(pooled), flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=Path("../shared/data/ujiindoorloc"),
                     help="folder with trainingData.csv (default %(default)s)")
-    ap.add_argument("--stage", default="all", choices=["choose", "report", "phones", "scale", "all"])
+    ap.add_argument("--stage", default="all", choices=["choose", "report", "phones", "lou", "scale", "all"])
     ap.add_argument("--only", default="", help="comma-separated substrings of candidate names")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(str(a.data / "trainingData.csv"))
     assert fs.user is not None, "UJIIndoorLoc rows carry USERID"
     names = [n for n in CANDIDATES if not a.only or n == BASELINE or any(o in n for o in a.only.split(","))]
-    stages = ["choose", "report", "phones", "scale"] if a.stage == "all" else [a.stage]
+    stages = ["choose", "report", "phones", "lou", "scale"] if a.stage == "all" else [a.stage]
     for stage in stages:
-        if stage == "scale":
-            scale(fs, names)
+        if stage in ("scale", "lou"):
+            (scale if stage == "scale" else leave_one_user_out)(fs, names)
             continue
         train, test, tr_desc, te_desc = splits(fs, stage)
         cov = covered(train, test)
