@@ -5,6 +5,7 @@ import hashlib
 import io
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -249,3 +250,66 @@ def test_the_reduction_over_weighted_points_equals_the_dense_one(campus):
     live = dense.top_p > 0
     assert np.array_equal(np.where(live, fast.top_rp, -1), np.where(live, dense.top_rp, -1))
     assert fast.top_rp.shape == (len(scans), model.n_candidates)
+
+
+# ---- the fast query path answers what the full computation answered --------------------------
+REFERENCE = Path(__file__).with_name("wknn_reference.json")
+
+
+def _reference_case():
+    """A two-building campus whose far transmitters go unheard (a scan's candidates are a
+    subset of the fingerprints), the model fitted on it, and its queries: noisy scans at
+    every reference point, some shifted by ±8 dB, scans hearing one or two transmitters,
+    and (x, y, floor, radius) restrictions for a third of them."""
+    sites = [_rename(make_site(nx=8, ny=5, spacing_m=4.0, n_wifi=10, n_ble=6, seed=21 + b, noise_db=2.0,
+                               sensitivity_dbm=-80.0), f"b{b}") for b in (0, 1)]
+    rows = []
+    for b, site in enumerate(sites):
+        for r in site.survey(scans_per_rp=3, seed=7 + b).to_rows():
+            rows.append({**r, "building": b, "label": f"b{b}-{r['label']}", "x": r["x"] + 40.0 * b})
+    model = make_model("wknn").fit(FingerprintSet.from_rows(rows))
+    rng = np.random.default_rng(8)
+    scans, near = [], []
+    for b, site in enumerate(sites):
+        for i, (_, x, y, f) in enumerate(site.rp):
+            s = site.scan(x, y, f, None, rng, noise_db=4.0)
+            if i % 5 == 1:
+                s = {t: v + (8.0 if b else -8.0) for t, v in s.items()}
+            if i % 13 == 2:
+                s = dict(list(s.items())[: 1 + i % 2])
+            scans.append(s)
+            near.append((x + 40.0 * b + 3.0, y, f, 6.0) if i % 3 == 0 else None)
+    return model, scans, near
+
+
+def _reference_answers(model, scans, near) -> dict:
+    """Raw (uncalibrated) answers one scan at a time, as ``locate`` asks, and the coverage distances."""
+    out: dict = {"k": model.k_, "x": [], "y": [], "floor": [], "building": [], "covariance": [], "best_rp": []}
+    for s, n in zip(scans, near, strict=True):
+        pred = model.predict([s], near=None if n is None else n[:3], radius_m=None if n is None else n[3],
+                             calibrated=False)
+        for key in ("x", "y", "floor", "building", "best_rp"):
+            out[key].append(getattr(pred, key)[0].item())
+        out["covariance"].append(pred.covariance[0].ravel().tolist())
+    out["nearest"] = model.coverage(scans)[0].tolist()
+    return out
+
+
+def test_the_fast_path_answers_as_the_full_computation_did():
+    """Against answers the full computation (before the candidate-subset path, commit
+    6c0b060) gave on this campus; regenerate with
+    ``python -m tests.estimation.test_fingerprint_wknn`` on that commit."""
+    expected = json.loads(REFERENCE.read_text())
+    model, scans, near = _reference_case()
+    assert model.k_ == expected["k"]
+    for candidates in (8, 30, 96):  # few: many queries take the full-row fallback
+        model.CANDIDATES = candidates
+        got = _reference_answers(model, scans, near)
+        for key in ("floor", "building", "best_rp"):
+            assert got[key] == expected[key], (candidates, key)
+        for key in ("x", "y", "covariance", "nearest"):
+            assert np.allclose(got[key], expected[key], rtol=1e-6, atol=1e-6), (candidates, key)
+
+
+if __name__ == "__main__":
+    REFERENCE.write_text(json.dumps(_reference_answers(*_reference_case())) + "\n")
