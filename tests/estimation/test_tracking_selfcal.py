@@ -142,8 +142,9 @@ def test_pf_particles_carry_their_own_calibration():
     t.predict(Step(0, 10.0, 0.0, length_std_m=1e-9, heading_std_deg=1e-9))
     # each particle moved 10·s_i along its own heading bias b_i
     moved = t.particles[:, :2] - before[:, :2]
-    np.testing.assert_allclose(moved[:, 0], 10 * before[:, 3] * np.sin(before[:, 2]), atol=1e-6)
-    np.testing.assert_allclose(moved[:, 1], 10 * before[:, 3] * np.cos(before[:, 2]), atol=1e-6)
+    # (particles are kept as float16 offsets from their mean: ≤ 4 mm within 8 m of it)
+    np.testing.assert_allclose(moved[:, 0], 10 * before[:, 3] * np.sin(before[:, 2]), atol=4e-3)
+    np.testing.assert_allclose(moved[:, 1], 10 * before[:, 3] * np.cos(before[:, 2]), atol=4e-3)
 
 
 @pytest.mark.parametrize("name", AUGMENTED)
@@ -194,8 +195,10 @@ def test_inflate_grows_the_covariance_and_keeps_the_mean(name):
     t.predict(Step(0, 0.7, 30.0))
     m, P = t.mean, t.covariance
     t.inflate(4.0)
-    np.testing.assert_allclose(t.mean, m, atol=1e-12)
-    np.testing.assert_allclose(t.covariance, 4.0 * P, rtol=1e-6)
+    # a PF keeps its particles as float16 offsets from their mean (well under 1 mm here)
+    exact = not name.startswith("pf")
+    np.testing.assert_allclose(t.mean, m, atol=1e-12 if exact else 1e-4)
+    np.testing.assert_allclose(t.covariance, 4.0 * P, rtol=1e-6 if exact else 1e-3)
 
 
 @pytest.mark.parametrize("name", AUGMENTED)

@@ -25,9 +25,10 @@ With ``min_particles`` below ``n_particles`` the particle count adapts (KLD-samp
 needs, between the two; equal values (the default, see ``KLD_MIN_PARTICLES``) keep a fixed
 count; a reset starts with ``n_particles``.
 Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()`` with
-the particles and weights packed as float32 (``packed``). Particles and weights are kept
-float32-exact in memory too (``_quantize`` after every change), so a restored filter
-continues exactly as the one that was stored.
+the particles packed as float16 offsets from an anchor near their mean (≤ 8 mm within 16 m
+of it) and the weights as float32 (``packed``). The filter holds exactly those values
+(``_quantize`` after every change; a step's new positions are rounded before the walls
+judge them), so a restored filter continues exactly as the one that was stored.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
 from server.estimation.tracking.measurements import parse_on_wall, range_usable
-from server.estimation.tracking.packed import pack, unpack
+from server.estimation.tracking.packed import anchor_of, pack, pack_offsets, round_to_anchor, unpack
 from server.estimation.tracking.resampling import effective_sample_size, kld_count, systematic_resample
 from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
 from server.estimation.types import Fix, Step
@@ -55,6 +56,9 @@ from server.estimation.types import Fix, Step
 KLD_MIN_PARTICLES = 1000
 KLD_BIN_M = 1.0
 KLD_EPSILON = 0.15
+#: particles further than this (m, or rad / scale units) from their anchor move it to their mean
+#: (float16 offsets keep ≤ 8 mm up to 16 m)
+RECENTER_M = 16.0
 
 
 @register
@@ -64,6 +68,7 @@ class ParticleFilterXYTracker(Tracker):
     #: columns of a particle (2: [x, y]; 4 with the calibration)
     dim: int = 2
     particles: np.ndarray  # (n, dim), set by reset() and _load_state()
+    _anchor: np.ndarray | None  # what the particles' float16 offsets are from (None: float32 values)
     weights: np.ndarray  # (n,), sum 1
 
     def __init__(
@@ -97,6 +102,7 @@ class ParticleFilterXYTracker(Tracker):
             "max_range_m": float(max_range_m),
         }
         self.rng = make_rng(seed)
+        self._anchor = None
         #: the floor's walkable area (None: unconstrained); set by the session, not stored
         self.walkable: floorplan.Walkable | None = None
         self._wall_index: floorplan.WallIndex | None = None
@@ -152,6 +158,7 @@ class ParticleFilterXYTracker(Tracker):
 
     def _move(self, moved: np.ndarray, step_m: float) -> None:
         old = self.particles
+        moved = self._round(moved, recenter=True)  # walls judge the positions the filter keeps
         dead = self._crosses(old[:, :2], moved[:, :2])
         if self.walkable is not None:
             dead |= ~self.walkable.contains(moved[:, :2])
@@ -179,6 +186,9 @@ class ParticleFilterXYTracker(Tracker):
         P = (diff * self.weights[:, None]).T @ diff + (step_m**2 + self.params["q"]) * np.eye(2)
         L = np.linalg.cholesky(0.5 * (P + P.T) + 1e-9 * np.eye(2))
         draws = m + self.rng.standard_normal((tries * n, 2)) @ L.T
+        if self._anchor is not None:  # judged as they will be kept (``_round``)
+            rounded = round_to_anchor(draws, self._anchor[:2])
+            draws = draws if rounded is None else rounded
         inside = draws[self.walkable.contains(draws)]
         if len(inside) == 0:
             return None
@@ -212,10 +222,24 @@ class ParticleFilterXYTracker(Tracker):
         self._quantize()
 
     def _quantize(self) -> None:
-        """Round particles and weights to float32 values (kept as float64 arrays): what
-        ``to_dict`` stores is then exactly what the filter holds."""
-        self.particles = self.particles.astype(np.float32).astype(float)
+        """Particles and weights as stored (float64 arrays holding float16-offset and float32
+        values): what ``to_dict`` stores is then exactly what the filter holds (``packed``)."""
+        self.particles = self._round(self.particles, recenter=False)
         self.weights = self.weights.astype(np.float32).astype(float)
+
+    def _round(self, points: np.ndarray, recenter: bool) -> np.ndarray:
+        """Rows of particles as stored: float16 offsets from the anchor, which moves to their
+        mean when ``recenter`` or when an offset exceeds ``RECENTER_M`` (else rounding again
+        changes nothing); float32 values when an offset does not fit float16 at all."""
+        anchor = self._anchor
+        if recenter or anchor is None or float(np.abs(points - anchor).max(initial=0.0)) > RECENTER_M:
+            anchor = points.mean(axis=0)
+        rounded = round_to_anchor(points, anchor)
+        if rounded is None:
+            self._anchor = None
+            return points.astype(np.float32).astype(float)
+        self._anchor = anchor
+        return rounded
 
     # -- estimate -----------------------------------------------------------------
     @property
@@ -247,7 +271,7 @@ class ParticleFilterXYTracker(Tracker):
         return {
             "mean": self.mean.tolist(),
             "cov": self.covariance.tolist(),
-            "particles": pack(self.particles),
+            "particles": pack(self.particles) if self._anchor is None else pack_offsets(self.particles, self._anchor),
             "weights": None if uniform else pack(self.weights),  # None: uniform (after a resampling)
             "rng": rng_state(self.rng),
         }
@@ -259,7 +283,11 @@ class ParticleFilterXYTracker(Tracker):
             raise ValueError(f"stored particles do not fit {self.params['n_particles']} × {self.dim}")
         self.particles = particles.reshape(n, self.dim)
         self.weights = np.full(n, 1.0 / n) if state["weights"] is None else unpack(state["weights"]).reshape(n)
-        self._quantize()
+        # as stored, not rounded again: the rounding's anchor was the cloud's mean before it
+        self._anchor = anchor_of(state["particles"])
+        if self._anchor is None:  # a float32 pack or plain lists (stored before offsets): float32 values
+            self.particles = self.particles.astype(np.float32).astype(float)
+        self.weights = self.weights.astype(np.float32).astype(float)
         self.rng = rng_from_state(state["rng"])
 
 
