@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Mapping
-from dataclasses import replace
 
 from server.db import Database
 from server.domain import Coverage, Located, ServingModel
@@ -20,6 +19,7 @@ from server.estimation.fingerprint import (
     ArtifactError,
     FingerprintModel,
     UnknownTransmittersError,
+    WKNNModel,
     checksum,
     from_bytes,
 )
@@ -110,17 +110,22 @@ class Positioning:
     def locate_answer(
         self, site_id: int, rss: Mapping[str, float], heading_deg: float | None = None, model_id: int | None = None,
     ) -> Located:
-        """``locate`` for a phone asking where it is: the fix and whether the scan resembles anything surveyed."""
+        """``locate`` for a phone asking where it is: the fix and whether the scan resembles anything surveyed
+        (a ``wknn`` model measures both in one distance pass)."""
         serving = self.serving_model(site_id, model_id)
-        located = self.locate(site_id, rss, heading_deg, serving=serving)
-        return replace(located, coverage=scan_coverage(self.cache.get(serving.model_id, serving.sha256), rss))
+        model = self.cache.get(serving.model_id, serving.sha256)
+        threshold = coverage_threshold(model)
+        if threshold is None or not isinstance(model, WKNNModel):
+            return self.locate(site_id, rss, heading_deg, serving=serving)
+        try:
+            fix, nearest = model.locate_covered(rss, heading_deg)
+        except UnknownTransmittersError:
+            raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
+        return Located(fix, serving.model_id, serving.algorithm, coverage=Coverage(ratio=nearest / threshold))
 
 
-def scan_coverage(model: FingerprintModel, rss: Mapping[str, float]) -> Coverage | None:
-    """The scan's ``Coverage`` under a model that measures it (``coverage()`` and a finite threshold from its
-    internal cross-validation: ``wknn``); None for the others."""
+def coverage_threshold(model: FingerprintModel) -> float | None:
+    """The coverage threshold of a model that measures coverage (``wknn``, with a finite threshold from its
+    internal cross-validation); None for the others."""
     threshold = float(getattr(model, "coverage_threshold_", math.inf))
-    if not hasattr(model, "coverage") or not math.isfinite(threshold) or threshold <= 0:
-        return None
-    nearest, _ = model.coverage(model.scan_matrix([rss]))
-    return Coverage(ratio=float(nearest[0]) / threshold)
+    return threshold if isinstance(model, WKNNModel) and math.isfinite(threshold) and threshold > 0 else None

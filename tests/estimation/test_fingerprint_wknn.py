@@ -10,7 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.estimation.fingerprint import ArtifactError, FingerprintSet, checksum, from_bytes, make_model, to_bytes
+from server.estimation.fingerprint import (
+    ArtifactError,
+    FingerprintSet,
+    WKNNModel,
+    checksum,
+    from_bytes,
+    make_model,
+    to_bytes,
+)
 from server.estimation.fingerprint.artifact import LIBRARY_VERSION, MAGIC
 from server.estimation.fingerprint.calibration import IDENTITY
 from tests.helpers.synthetic import make_site
@@ -216,7 +224,7 @@ def test_the_fast_hierarchy_equals_the_full_one(campus, candidates):
     rng = np.random.default_rng(1)
     scans = [site.scan(x, y, f, None, rng, noise_db=5.0) for site in (b0, b1) for _, x, y, f in site.rp]
     Q = model.encoder_.transform(model.scan_matrix(scans))
-    D = model._offset_distances(Q, None)
+    D = model._distances(Q, None)
     assert np.allclose(model._hierarchy_scores(D), model._scores(model._restrict(D), model.k_))
 
 
@@ -295,20 +303,56 @@ def _reference_answers(model, scans, near) -> dict:
     return out
 
 
-def test_the_fast_path_answers_as_the_full_computation_did():
+@pytest.fixture(scope="module")
+def reference_case():
+    return _reference_case()
+
+
+def test_the_fast_path_answers_as_the_full_computation_did(reference_case):
     """Against answers the full computation (before the candidate-subset path, commit
     6c0b060) gave on this campus; regenerate with
     ``python -m tests.estimation.test_fingerprint_wknn`` on that commit."""
     expected = json.loads(REFERENCE.read_text())
-    model, scans, near = _reference_case()
+    model, scans, near = reference_case
     assert model.k_ == expected["k"]
     for candidates in (8, 30, 96):  # few: many queries take the full-row fallback
         model.CANDIDATES = candidates
         got = _reference_answers(model, scans, near)
+        model.CANDIDATES = WKNNModel.CANDIDATES
         for key in ("floor", "building", "best_rp"):
             assert got[key] == expected[key], (candidates, key)
         for key in ("x", "y", "covariance", "nearest"):
             assert np.allclose(got[key], expected[key], rtol=1e-6, atol=1e-6), (candidates, key)
+
+
+
+def test_candidate_distances_are_the_full_rows_distances(reference_case):
+    """A query's candidates carry the full row's distances bit for bit; every other fingerprint is at exactly 1."""
+    model, scans, _ = reference_case
+    Q = model.encoder_.transform(model.scan_matrix(scans))
+    F = model.XT_.T.astype(np.float64)
+    for q in Q:
+        cand, d = model._query_distances(q, None)
+        qq = q.astype(np.float64) * model.tx_active_
+        dense = np.abs(F - qq).sum(axis=1) / (F.sum(axis=1) + qq.sum())
+        assert len(cand) < len(F) and np.allclose(d, dense[cand], rtol=1e-6)
+        assert np.all(dense[np.setdiff1d(np.arange(len(F)), cand)] == pytest.approx(1.0))
+        assert np.array_equal(model._full_row(cand, d), model._distances(q[None], None)[0])
+
+
+def test_locate_covered_is_locate_and_coverage_from_one_pass(site_and_model):
+    site, model = site_and_model
+    rng = np.random.default_rng(7)
+    scans = [site.scan(x, y, f, None, rng) for _, x, y, f in site.rp[::4]]
+    scans.append({t: v + 8.0 for t, v in scans[0].items()})
+    for s in scans:
+        fix, nearest = model.locate_covered(s)
+        alone = model.locate(s)
+        assert (fix.x, fix.y, fix.floor) == (alone.x, alone.y, alone.floor)
+        assert np.array_equal(fix.covariance, alone.covariance)
+        assert nearest == model.coverage([s])[0][0]
+    shifted = [{t: v + 8.0 for t, v in s.items()} for s in scans]
+    assert model.coverage(shifted)[1].mean() >= 0.9  # offset-corrected on both sides: a phone's offset is no strangeness
 
 
 if __name__ == "__main__":

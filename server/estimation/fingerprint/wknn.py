@@ -15,6 +15,13 @@ The three steps are resolved from each query's ``CANDIDATES`` nearest fingerprin
 (one partial sort), falling back to the full matrix when those hold too few of the
 chosen building or floor, so the answer is exactly the full computation's.
 
+**Coverage.** ``in_coverage``: a scan farther from every fingerprint than 99 % of the
+internally held-out scans at unsurveyed reference points were (``coverage_threshold_``)
+resembles nothing surveyed, and its fix is only "the nearest room". Both sides use the
+same distance: to the nearest fingerprint of the whole site, *after* the per-query
+offset estimate (so a phone's constant RSS offset does not push it out of coverage).
+``locate_covered`` takes that distance from the query's own distance pass.
+
 **Calibration.** The fix's covariance (the posterior's spread + ``cov_floor_m²``) goes
 through ``calibration_`` (calibration.py), fitted at ``fit`` on internally held-out
 fixes so a model used on its own is calibrated; the server's training step refits it
@@ -29,7 +36,13 @@ transmitters): with features ≥ 0 and 0 = not heard,
   ``Σ|q−f| = Σq + Σf − 2·Σ_{j heard by q} min(q_j, f_j)``;
 - ``euclidean``: ``|q|² + |f|² − 2·q·f``;
 
-so a query costs one gather of its heard columns (n × heard), no scikit-learn call.
+so a query costs one gather of its heard columns, no scikit-learn call. The gather is
+over an index of the fingerprints that hear each transmitter (``tx_ptr_``/``tx_rows_``/
+``tx_vals_``, the stored matrix's nonzeros by transmitter): with Sørensen a fingerprint
+hearing none of the query's transmitters is at distance exactly 1, the largest possible,
+so one query's work is over the few thousand fingerprints sharing a transmitter with it
+(its *candidates*), not the whole matrix; the full row is only built when the candidates
+hold too few fingerprints for the hierarchy.
 
 **Device offset.** ``offset_estimate`` (default): the phone's RSS offset is estimated
 per query as the median difference (dB) between the query and its ``offset_neighbours``
@@ -45,7 +58,12 @@ transmitters heard by fewer than ``min_tx_rows`` fingerprints are ignored.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from contextvars import ContextVar
+
 import numpy as np
+
+from server.estimation.types import Fix
 
 from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
@@ -54,6 +72,10 @@ from .posterior import reduce_posterior
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
 CV_FOLDS = 5
+
+#: where ``_log_scores`` leaves each chunk's coverage distances while ``locate_covered`` waits for
+#: them (a context variable: one model instance serves several threads at once)
+_COVERAGE_SINK: ContextVar[list[np.ndarray] | None] = ContextVar("wknn_coverage_sink", default=None)
 
 
 def _row_keys(X: np.ndarray, row_rp: np.ndarray, block: int = 8192) -> np.ndarray:
@@ -81,6 +103,7 @@ class WKNNModel(FingerprintModel):
 
     name = "wknn"
     CANDIDATES = 96  # nearest fingerprints per query the hierarchy is resolved from
+    DERIVED = ("tx_ptr_", "tx_rows_", "tx_vals_")  # rebuilt from XT_ at load, not stored
 
     def __init__(self, k: int | None = None, distance: str = "sorensen", building_k: int = 10,
                  floor_k: int = 10, offset_search_db: float = 0.0, offset_step_db: float = 3.0,
@@ -114,7 +137,7 @@ class WKNNModel(FingerprintModel):
     def __getstate__(self) -> dict:
         from scipy import sparse
 
-        state = dict(vars(self))
+        state = {k: v for k, v in vars(self).items() if k not in self.DERIVED}
         if isinstance(state.get("XT_"), np.ndarray):
             state["XT_"] = sparse.csr_matrix(state["XT_"])
         return state
@@ -126,6 +149,8 @@ class WKNNModel(FingerprintModel):
         if sparse.issparse(state.get("XT_")):
             state["XT_"] = np.ascontiguousarray(state["XT_"].toarray(), dtype=np.float32)
         vars(self).update(state)
+        if isinstance(state.get("XT_"), np.ndarray):
+            self._index_transmitters()
 
     # ---- fit ---------------------------------------------------------------------------
     def _fit(self, X, H, data: TrainingData) -> None:
@@ -164,6 +189,16 @@ class WKNNModel(FingerprintModel):
         self.row_rp_ = np.asarray(row_rp, dtype=np.int64)
         self.row_group_ = np.asarray(row_group, dtype=np.int64)
         self.row_building_ = self.group_building_[self.row_group_] if len(self.row_group_) else self.row_group_
+        self._index_transmitters()
+
+    def _index_transmitters(self) -> None:
+        """``XT_``'s nonzeros by transmitter: the fingerprints hearing transmitter j are
+        ``tx_rows_[tx_ptr_[j]: tx_ptr_[j + 1]]`` (ascending), their features ``tx_vals_`` alike
+        (float64: a query's sums need no conversion; ≈ 6 MB for UJIIndoorLoc)."""
+        tx, rows = np.nonzero(self.XT_)
+        self.tx_ptr_ = np.concatenate([[0], np.cumsum(np.bincount(tx, minlength=self.XT_.shape[0]))])
+        self.tx_rows_ = rows
+        self.tx_vals_ = self.XT_[tx, rows].astype(np.float64)
 
     def reuse_choices(self, validated: FingerprintModel) -> None:
         """Take k and the coverage threshold ``validated`` chose by cross-validation and
@@ -189,13 +224,10 @@ class WKNNModel(FingerprintModel):
         n_rp = int(self.row_rp_.max()) + 1 if n else 0
         fold_rp = (rng.permutation(n_rp) % CV_FOLDS)[self.row_rp_]
         grid = self.k_grid if self.k is None else (self.k,)
-        errs, held_rp, count = self._cv_pass(fold_rp, grid, rng)
+        errs, held_rp, count, nearest = self._cv_pass(fold_rp, grid, rng, coverage=True)
         if count == 0:
             return
-        # a scan farther from every fingerprint than 99 % of the scans at held-out
-        # reference points were from theirs resembles nothing surveyed
-        self.coverage_threshold_ = float(np.quantile(self._cv_nearest, 0.99))
-        del self._cv_nearest
+        self.coverage_threshold_ = float(np.quantile(nearest, 0.99))  # module docstring: Coverage
         self.k_cv_errors_ = (errs / count).tolist()
         best = int(np.argmin(errs))
         self.k_ = int(grid[best])
@@ -218,15 +250,17 @@ class WKNNModel(FingerprintModel):
             fold_row = rng.integers(0, CV_FOLDS, n)
         return self._cv_pass(fold_row, (self.k_,), rng)[1]
 
-    def _cv_pass(self, fold: np.ndarray, grid, rng) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]], int]:
+    def _cv_pass(self, fold: np.ndarray, grid, rng, coverage: bool = False
+                 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]], int, np.ndarray]:
         """Sum of errors per k over the folds, the residuals and raw covariances of the
-        held-out fixes per k, and the count of held-out scans."""
+        held-out fixes per k, the count of held-out scans, and (``coverage``) each held-out
+        scan's coverage distance (``_coverage_distance``, as a query's) to its fold's map."""
         XT_all, H_all = self.XT_, self.H_  # folds are column subsets: one fold's copy at a time
         rp_all, grp_all = self.row_rp_, self.row_group_
         errs = np.zeros(len(grid))
         res: list[list[np.ndarray]] = [[] for _ in grid]
         covs: list[list[np.ndarray]] = [[] for _ in grid]
-        nearest: list[np.ndarray] = []
+        nearest: list[float] = []
         count = 0
         try:
             for f in range(CV_FOLDS):
@@ -238,7 +272,11 @@ class WKNNModel(FingerprintModel):
                     te = np.sort(rng.choice(te, self.cv_rows // CV_FOLDS, replace=False))
                 self._set_columns(XT_all[:, tr], None if H_all is None else H_all[tr], rp_all[tr], grp_all[tr])
                 Hq = None if H_all is None else H_all[te] / max(self.heading_weight_, 1e-12)
-                D = self._distances(XT_all[:, te].T, Hq)
+                Q = XT_all[:, te].T
+                if coverage:
+                    nearest.extend(self._coverage_distance(*self._offset_query(q, None if Hq is None else Hq[i]))
+                                   for i, q in enumerate(Q))
+                D = self._distances(Q, Hq)
                 D[self.row_group_[None, :] != grp_all[te][:, None]] = np.inf  # in place: D is large
                 ok = np.isfinite(D).any(axis=1)  # a floor with no map left says nothing
                 D, te = D[ok], te[ok]
@@ -246,7 +284,6 @@ class WKNNModel(FingerprintModel):
                     continue
                 truth = self.rp_xy_[rp_all[te]]
                 order = self._nearest(D, max(grid))
-                nearest.append(np.take_along_axis(D, order[:, :1], axis=1)[:, 0])
                 for i, k in enumerate(grid):
                     with np.errstate(divide="ignore"):
                         pred = self._reduce(np.log(self._scores(D, k, order)))
@@ -257,12 +294,24 @@ class WKNNModel(FingerprintModel):
                 count += len(te)
         finally:
             self._set_columns(XT_all, H_all, rp_all, grp_all)
-        self._cv_nearest = np.concatenate(nearest) if nearest else np.zeros(0)
         held = [(np.concatenate(r) if r else np.zeros((0, 2)), np.concatenate(c) if c else np.zeros((0, 2, 2)))
                 for r, c in zip(res, covs, strict=True)]
-        return errs, held, count
+        return errs, held, count, np.array(nearest)
 
     # ---- distances ---------------------------------------------------------------------
+    def _intersections(self, cols: np.ndarray, qv: np.ndarray) -> np.ndarray:
+        """(n,) ``Σ_j min(q_j, f_j)`` over the query's heard columns ``cols`` (values ``qv``,
+        float32) for every stored fingerprint, accumulated in float64 in column order (the
+        same sums, bit for bit, as a dense sum over the gathered rows), from the transmitter
+        index only: one slice per heard transmitter."""
+        ptr, rows, vals = self.tx_ptr_, self.tx_rows_, self.tx_vals_
+        spans = [(ptr[j], ptr[j + 1]) for j in cols.tolist()]
+        if not spans:
+            return np.zeros(self.XT_.shape[1])
+        w = np.concatenate([np.minimum(vals[a:b], v) for (a, b), v in zip(spans, qv.astype(np.float64).tolist(),
+                                                                          strict=True)])
+        return np.bincount(np.concatenate([rows[a:b] for a, b in spans]), weights=w, minlength=self.XT_.shape[1])
+
     def _distances(self, Q: np.ndarray, Hq: np.ndarray | None) -> np.ndarray:
         """(nq, n) distances from encoded queries to the stored fingerprints."""
         Q = np.asarray(Q, dtype=np.float32) * self.tx_active_[None, :]
@@ -270,13 +319,11 @@ class WKNNModel(FingerprintModel):
         for i, q in enumerate(Q):
             cols = np.flatnonzero(q > 0)
             qv = q[cols]
-            Fh = self.XT_[cols]  # (heard, n)
             if self.distance == "sorensen":
-                inter = np.minimum(Fh, qv[:, None]).sum(axis=0, dtype=np.float64)
                 tot = float(qv.sum()) + self.x_sum_
-                d = (tot - 2.0 * inter) / np.maximum(tot, 1e-9)
+                d = (tot - 2.0 * self._intersections(cols, qv)) / np.maximum(tot, 1e-9)
             else:
-                cross = qv @ Fh
+                cross = qv @ self.XT_[cols]
                 d = np.sqrt(np.maximum(float(qv @ qv) + self.x_sq_ - 2.0 * cross, 0.0))
             out[i] = d
         if self.H_ is not None and Hq is not None:
@@ -285,54 +332,72 @@ class WKNNModel(FingerprintModel):
             out += np.sqrt(dh)
         return out
 
+    def _query_distances(self, q: np.ndarray, hq: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One encoded query's distances as (candidates, their distances): every stored
+        fingerprint outside the candidates is at distance exactly 1 (Sørensen: it hears
+        none of the query's transmitters), the farthest possible. Euclidean distance,
+        headings, or a query hearing no active transmitter: every fingerprint is a candidate."""
+        q = np.asarray(q, dtype=np.float32) * self.tx_active_
+        cols = np.flatnonzero(q > 0)
+        if self.distance != "sorensen" or (hq is not None and self.H_ is not None) or not len(cols):
+            return np.arange(self.XT_.shape[1]), self._distances(q[None], None if hq is None else hq[None])[0]
+        qv = q[cols]
+        inter = self._intersections(cols, qv)
+        cand = np.flatnonzero(inter)
+        tot = float(qv.sum()) + self.x_sum_[cand]
+        return cand, (tot - 2.0 * inter[cand]) / np.maximum(tot, 1e-9)
+
+    def _full_row(self, cand: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """``_query_distances``' answer as the (n,) row over every fingerprint."""
+        row = np.ones(self.XT_.shape[1])
+        row[cand] = d
+        return row
+
+    def _coverage_distance(self, cand: np.ndarray, d: np.ndarray) -> float:
+        """Distance to the nearest stored fingerprint (inf when none is stored)."""
+        low = float(d.min()) if len(d) else np.inf
+        return min(low, 1.0) if len(cand) < self.XT_.shape[1] else low
+
     def _shifted(self, R: np.ndarray, delta: float) -> np.ndarray:
         return self.encoder_.transform(R + delta)
 
-    def _estimate_offset(self, Q: np.ndarray, D: np.ndarray) -> np.ndarray:
-        """Per-query RSS offset (dB): the median, over the transmitters heard both by the
+    def _estimate_offset(self, q: np.ndarray, cand: np.ndarray, d: np.ndarray) -> float:
+        """One query's RSS offset (dB): the median, over the transmitters heard both by the
         query and by its ``offset_neighbours`` nearest fingerprints, of (fingerprint −
-        query); 0 when fewer than 3 such readings."""
-        k = max(1, min(self.offset_neighbours, D.shape[1]))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
-        Rq = self._decode(Q)
-        out = np.zeros(len(Q))
-        for i in range(len(Q)):
-            cols = np.flatnonzero(~np.isnan(Rq[i]))
-            F = self._decode(self.XT_[np.ix_(cols, idx[i])].T)
-            diff = F - Rq[i, cols][None, :]
-            diff = diff[~np.isnan(diff)]
-            if len(diff) >= 3:
-                out[i] = float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db))
-        return out
+        query); 0 when fewer than 3 such readings. (The nearest are among the candidates:
+        a non-candidate hears none of the query's transmitters and adds no reading.)"""
+        k = max(1, min(self.offset_neighbours, self.XT_.shape[1]))
+        near = cand if len(cand) <= k else cand[np.argpartition(d, k - 1)[:k]]
+        rq = self._decode(q[None])[0]
+        cols = np.flatnonzero(~np.isnan(rq))
+        diff = self._decode(self.XT_[np.ix_(cols, near)].T) - rq[cols][None, :]
+        diff = diff[~np.isnan(diff)]
+        return float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db)) if len(diff) >= 3 else 0.0
 
-    def _offset_distances(self, Q: np.ndarray, Hq) -> np.ndarray:
-        """Distances with the per-query RSS offset (see the module docstring)."""
-        D = self._distances(Q, Hq)
+    def _offset_query(self, q: np.ndarray, hq: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """``_query_distances`` with the per-query RSS offset (see the module docstring)."""
+        cand, d = self._query_distances(q, hq)
         if self.offset_estimate:
-            R0 = self._decode(Q)
-            total = np.zeros(len(Q))
-            Qs = Q
+            r0 = self._decode(q[None])
+            total, qs = 0.0, q
             for _ in range(self.offset_iterations):
-                delta = self._estimate_offset(Qs, D)
-                redo = np.abs(delta) >= 0.5
-                if not redo.any():
+                delta = self._estimate_offset(qs, cand, d)
+                if abs(delta) < 0.5:
                     break
-                total = np.clip(total + np.where(redo, delta, 0.0), -self.offset_max_db, self.offset_max_db)
-                Qs = self.encoder_.transform(R0 + total[:, None])
-                D[redo] = self._distances(Qs[redo], None if Hq is None else Hq[redo])
+                total = float(np.clip(total + delta, -self.offset_max_db, self.offset_max_db))
+                qs = self.encoder_.transform(r0 + total)[0]
+                cand, d = self._query_distances(qs, hq)
         if self.offset_search_db <= 0:
-            return D
-        R = self._decode(Q)
-        best = D.min(axis=1)
+            return cand, d
+        r = self._decode(q[None])
+        best = self._coverage_distance(cand, d)
         steps = np.arange(self.offset_step_db, self.offset_search_db + 1e-9, self.offset_step_db)
         for delta in np.concatenate([steps, -steps]):
-            Dd = self._distances(self._shifted(R, float(delta)), Hq)
-            m = Dd.min(axis=1)
-            better = m < best
-            if better.any():
-                D[better] = Dd[better]
-                best = np.where(better, m, best)
-        return D
+            c2, d2 = self._query_distances(self._shifted(r, float(delta))[0], hq)
+            m = self._coverage_distance(c2, d2)
+            if m < best:
+                cand, d, best = c2, d2, m
+        return cand, d
 
     def _decode(self, Q: np.ndarray) -> np.ndarray:
         """Encoded features back to dBm (NaN = not heard), for the offset search."""
@@ -384,42 +449,54 @@ class WKNNModel(FingerprintModel):
         np.add.at(scores, (np.broadcast_to(np.arange(n)[:, None], idx.shape), self.row_rp_[idx]), w)
         return scores
 
-    def _position(self, D: np.ndarray, k: int) -> np.ndarray:
-        s = self._scores(D, k)
-        return (s @ self.rp_xy_) / np.maximum(s.sum(axis=1, keepdims=True), 1e-300)
-
     def coverage(self, rss) -> tuple[np.ndarray, np.ndarray]:
-        """(distance to the nearest fingerprint, in-coverage flag) per scan — rss as
-        ``predict`` takes it. A scan is out of coverage when it is farther from every
-        fingerprint (after the offset estimate) than 99 % of the internally held-out
-        scans at unsurveyed reference points were (``coverage_threshold_``): it
-        resembles nothing surveyed, and its fix is only "the nearest room"."""
+        """(coverage distance, in-coverage flag) per scan — rss as ``predict`` takes it: the
+        distance to the nearest fingerprint after the offset estimate, and whether it is
+        within ``coverage_threshold_`` (module docstring: Coverage)."""
         self._check_fitted()
         Q = self.encoder_.transform(self._as_matrix(rss))
-        D = self._offset_distances(Q, None if not self.use_heading else self._headings(None, len(Q)))
-        nearest = D.min(axis=1) if D.shape[1] else np.full(len(Q), np.inf)
+        Hq = self._headings(None, len(Q))
+        nearest = np.array([self._coverage_distance(*self._offset_query(q, None if Hq is None else Hq[i]))
+                            for i, q in enumerate(Q)])
         return nearest, nearest <= self.coverage_threshold_
+
+    def locate_covered(self, rss: Mapping[str, float], heading_deg: float | None = None) -> tuple[Fix, float]:
+        """``locate`` and the scan's coverage distance (as ``coverage``), from one distance pass."""
+        sink: list[np.ndarray] = []
+        token = _COVERAGE_SINK.set(sink)
+        try:
+            fix = self.locate(rss, heading_deg)
+        finally:
+            _COVERAGE_SINK.reset(token)
+        return fix, float(sink[0][0])
 
     def _reduce(self, logs: np.ndarray):
         """The base reduction over only the reference points some query of the chunk
-        gives weight to (at most k per query instead of every reference point), indices
-        mapped back; candidates padded with (-1, 0) to ``n_candidates``."""
-        cols = np.flatnonzero(np.isfinite(logs).any(axis=0))
+        gives weight to (at most k per query instead of every reference point) and, when
+        every query gives weight to some, only their (building, floor) groups (the group
+        with the most mass is one of them), indices mapped back; candidates padded with
+        (-1, 0) to ``n_candidates``."""
+        live = np.isfinite(logs)
+        cols = np.flatnonzero(live.any(axis=0))
         if len(cols) == 0 or len(cols) == logs.shape[1]:
-            pred = super()._reduce(logs)
-        else:
-            pred = reduce_posterior(
-                logs[:, cols], self.rp_xy_[cols], self.rp_group_[cols], self.group_floor_,
-                self.group_building_, self.cov_floor_m_, self.n_candidates,
-            )
-            pred.best_rp = cols[pred.best_rp]
-            top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
-            pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
-            if pad > 0:
-                top = np.pad(top, ((0, 0), (0, pad)), constant_values=-1)
-                pred.top_p = np.pad(pred.top_p, ((0, 0), (0, pad)))
-            pred.top_rp = top
+            return super()._reduce(logs)
+        rp_group, group_floor, group_building = self.rp_group_[cols], self.group_floor_, self.group_building_
+        if live.any(axis=1).all():
+            groups, rp_group = np.unique(rp_group, return_inverse=True)
+            group_floor, group_building = group_floor[groups], group_building[groups]
+        pred = reduce_posterior(logs[:, cols], self.rp_xy_[cols], rp_group.reshape(-1), group_floor,
+                                group_building, self.cov_floor_m_, self.n_candidates)
+        pred.best_rp = cols[pred.best_rp]
+        top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
+        pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
+        if pad > 0:
+            top = np.concatenate([top, np.full((len(top), pad), -1)], axis=1)
+            pred.top_p = np.concatenate([pred.top_p, np.zeros((len(top), pad))], axis=1)
+        pred.top_rp = top
         return pred
+
+    def _hierarchy_m(self) -> int:
+        return min(self.XT_.shape[1], max(self.CANDIDATES, self.building_k, self.floor_k, self.k_))
 
     def _hierarchy_scores(self, D: np.ndarray) -> np.ndarray:
         """``_scores(_restrict(D), k_)`` from the ``CANDIDATES`` nearest fingerprints of
@@ -428,35 +505,57 @@ class WKNNModel(FingerprintModel):
         (floor) among the query's nearest overall; a query whose candidates hold too
         few of them takes the full path."""
         n, n_rows = D.shape
-        m = min(n_rows, max(self.CANDIDATES, self.building_k, self.floor_k, self.k_))
+        m = self._hierarchy_m()
         if m >= n_rows:
             return self._scores(self._restrict(D), self.k_)
         order = self._nearest(D, m)
         dist = np.take_along_axis(D, order, axis=1)
-        several_floors = len(self.group_floor_) > 1
-        several_buildings = several_floors and len(np.unique(self.group_building_)) > 1
         scores = np.zeros((n, len(self.rp_xy_)))
         for i in range(n):
-            o, d = order[i], dist[i]
-            ok = np.isfinite(d)
-            o, d = o[ok], d[ok]
-            if several_buildings:
+            row = self._resolve(order[i], dist[i])
+            scores[i] = self._scores(self._restrict(D[i: i + 1]), self.k_)[0] if row is None else row
+        return scores
+
+    def _resolve(self, o: np.ndarray, d: np.ndarray) -> np.ndarray | None:
+        """One query's scores over reference points from its nearest fingerprints ``o``
+        (distances ``d``, ascending): building, floor, then the ``k_`` nearest of that
+        floor; None when they hold too few of the chosen building or floor."""
+        ok = np.isfinite(d)
+        o, d = o[ok], d[ok]
+        if len(self.group_floor_) > 1:
+            if len(np.unique(self.group_building_)) > 1:
                 b = self._vote_small(self.row_building_[o[: self.building_k]], d[: self.building_k])
                 keep = self.row_building_[o] == b
                 if keep.sum() < max(self.floor_k, self.k_):
-                    scores[i] = self._scores(self._restrict(D[i: i + 1]), self.k_)[0]
-                    continue
+                    return None
                 o, d = o[keep], d[keep]
-            if several_floors:
-                g = self._vote_small(self.row_group_[o[: self.floor_k]], d[: self.floor_k])
-                keep = self.row_group_[o] == g
-                if keep.sum() < self.k_:
-                    scores[i] = self._scores(self._restrict(D[i: i + 1]), self.k_)[0]
-                    continue
-                o, d = o[keep], d[keep]
-            o, d = o[: self.k_], d[: self.k_]
-            np.add.at(scores[i], self.row_rp_[o], 1.0 / (d + 1e-6))
+            g = self._vote_small(self.row_group_[o[: self.floor_k]], d[: self.floor_k])
+            keep = self.row_group_[o] == g
+            if keep.sum() < self.k_:
+                return None
+            o, d = o[keep], d[keep]
+        o, d = o[: self.k_], d[: self.k_]
+        scores = np.zeros(len(self.rp_xy_))
+        np.add.at(scores, self.row_rp_[o], 1.0 / (d + 1e-6))
         return scores
+
+    def _query_scores(self, cand: np.ndarray, d: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """``_hierarchy_scores`` of one query given as ``_query_distances`` (candidates and
+        their distances; ``mask`` over reference points): from the candidates alone when
+        at least ``_hierarchy_m()`` of them are allowed (the nearest fingerprints are
+        then all candidates), else on the full row."""
+        if mask is not None:
+            d = np.where(mask[self.row_rp_[cand]], d, np.inf)
+        m = self._hierarchy_m()
+        if m < self.XT_.shape[1] and np.count_nonzero(np.isfinite(d)) >= m:
+            near = self._nearest(d[None], m)[0]
+            row = self._resolve(cand[near], d[near])
+            if row is not None:
+                return row
+        full = self._full_row(cand, d)
+        if mask is not None:
+            full[~mask[self.row_rp_]] = np.inf
+        return self._hierarchy_scores(full[None])[0]
 
     @staticmethod
     def _vote_small(labels: np.ndarray, d: np.ndarray):
@@ -467,8 +566,16 @@ class WKNNModel(FingerprintModel):
         return values[int(np.argmax(votes))]
 
     def _log_scores(self, Q, Hq, mask):
-        D = self._offset_distances(Q, Hq)
-        if mask is not None:
-            D = np.where(mask[:, self.row_rp_], D, np.inf)
+        """Per query: offset-corrected distances over its candidates, then the hierarchy;
+        each query's coverage distance goes to ``locate_covered`` when it waits for it."""
+        scores = np.zeros((len(Q), len(self.rp_xy_)))
+        nearest = np.empty(len(Q))
+        for i, q in enumerate(Q):
+            cand, d = self._offset_query(q, None if Hq is None else Hq[i])
+            nearest[i] = self._coverage_distance(cand, d)
+            scores[i] = self._query_scores(cand, d, None if mask is None else mask[i])
+        sink = _COVERAGE_SINK.get()
+        if sink is not None:
+            sink.append(nearest)
         with np.errstate(divide="ignore"):
-            return np.log(self._hierarchy_scores(D))
+            return np.log(scores)
