@@ -153,9 +153,10 @@ class FingerprintSet:
 
         The rows are read once and never kept (an iterator streamed from the store is held
         one row at a time): each reading goes into flat arrays (12 bytes) and the matrix is
-        filled at the end, a block of rows at a time. ``dtype``: float (default); ``np.float32`` halves the matrix;
-        ``np.float16`` (the server's training) quarters it when every reading is exactly a
-        float16 — whole dBm are — and is float32 otherwise, so the values are float32's."""
+        filled at the end, a block of rows at a time. ``dtype``: float (default);
+        ``np.float32`` halves the matrix; ``np.float16`` (the server's training) quarters it
+        when every reading is exactly a float16 — whole dBm are — and is float32 otherwise,
+        so the values are float32's."""
         fixed = tx_ids is not None
         col: dict[str, int] = {} if tx_ids is None else {tx: j for j, tx in enumerate(tx_ids)}
         heard, cols, values = array("i"), array("i"), array("d")  # readings per row; their columns, dBm
