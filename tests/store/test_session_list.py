@@ -51,3 +51,18 @@ def test_each_listed_session_equals_the_session_read_alone(db, site_id):
     assert (listed["no-track"].last_seq, listed["no-track"].track_length, listed["no-track"].estimate) == (-1, 0, None)
     assert (listed["unstarted-walk"].last_seq, listed["unstarted-walk"].track_length) == (0, 1)
     assert {i.id for i in every} == {*listed, "someone-else"} and all(i == alone.get(i.id, i) for i in every)
+
+
+def test_a_site_poll_reads_each_open_session_s_track_length(db, site_id):
+    start = est(None, 1.0, "init")
+    with db.transaction() as s:
+        sessions.add_session(s, "none", site_id, "owner", "pf", None, {}, [])
+        sessions.add_session(s, "walked", site_id, "owner", "pf", None, {}, [start])
+        sessions.add_session(s, "closed", site_id, "owner", "pf", None, {}, [start])
+    feed(db, "walked", -1, 0, 1, [est(1.0, 1.5), est(1.5, 2.0)], est(1.5, 2.0))
+    with db.transaction() as s:
+        assert sessions.close_session(s, "closed")
+    with db.transaction() as s:
+        polled = sessions.open_sessions_of_site(s, site_id)
+        assert polled == {sid: sessions.get_session(s, sid).track_length for sid in ("none", "walked")}
+    assert polled == {"none": 0, "walked": 3}
