@@ -78,6 +78,17 @@ CV_FOLDS = 5
 _COVERAGE_SINK: ContextVar[list[np.ndarray] | None] = ContextVar("wknn_coverage_sink", default=None)
 
 
+def _smallest(d: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` smallest values of the 1-D ``d``, in no order. Partitioned at two
+    ranks (k−2, k−1): NumPy then runs its introselect, measured 4–7× faster on a query's
+    few thousand distances than the vectorised select it runs for a single rank."""
+    if k >= len(d):
+        return np.arange(len(d))
+    if k == 1:
+        return np.array([np.argmin(d)])
+    return np.argpartition(d, (k - 2, k - 1))[:k]
+
+
 def _row_keys(X: np.ndarray, row_rp: np.ndarray, block: int = 8192) -> np.ndarray:
     """(n, 3) keys equal for equal (fingerprint, reference point) rows: two random projections
     of the row (float64, in blocks: memory stays O(n)) and the reference point. Different rows
@@ -343,7 +354,7 @@ class WKNNModel(FingerprintModel):
             return np.arange(self.XT_.shape[1]), self._distances(q[None], None if hq is None else hq[None])[0]
         qv = q[cols]
         inter = self._intersections(cols, qv)
-        cand = np.flatnonzero(inter)
+        cand = np.flatnonzero(inter > 0)  # (a boolean's nonzeros: ≈ 4× faster than a float array's)
         tot = float(qv.sum()) + self.x_sum_[cand]
         return cand, (tot - 2.0 * inter[cand]) / np.maximum(tot, 1e-9)
 
@@ -367,10 +378,9 @@ class WKNNModel(FingerprintModel):
         query); 0 when fewer than 3 such readings. (The nearest are among the candidates:
         a non-candidate hears none of the query's transmitters and adds no reading.)"""
         k = max(1, min(self.offset_neighbours, self.XT_.shape[1]))
-        near = cand if len(cand) <= k else cand[np.argpartition(d, k - 1)[:k]]
-        rq = self._decode(q[None])[0]
-        cols = np.flatnonzero(~np.isnan(rq))
-        diff = self._decode(self.XT_[np.ix_(cols, near)].T) - rq[cols][None, :]
+        near = cand[_smallest(d, k)]
+        cols = np.flatnonzero(q > 0)  # the heard readings alone: the others decode to NaN
+        diff = self._decode(self.XT_[np.ix_(cols, near)].T) - self._decode(q[cols][None])
         diff = diff[~np.isnan(diff)]
         return float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db)) if len(diff) >= 3 else 0.0
 
@@ -548,7 +558,8 @@ class WKNNModel(FingerprintModel):
             d = np.where(mask[self.row_rp_[cand]], d, np.inf)
         m = self._hierarchy_m()
         if m < self.XT_.shape[1] and np.count_nonzero(np.isfinite(d)) >= m:
-            near = self._nearest(d[None], m)[0]
+            near = _smallest(d, m)
+            near = near[np.argsort(d[near])]
             row = self._resolve(cand[near], d[near])
             if row is not None:
                 return row
