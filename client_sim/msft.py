@@ -324,15 +324,29 @@ def calibration_window(waypoints: np.ndarray, min_distance_m: float = 10.0, min_
 
 # --------------------------------------------------------------------------- errors
 def errors_against(walk: Walk, track) -> list[dict]:
-    """Rows ``{t, x, y, error_m}`` for estimates inside the waypoints' time span."""
+    """Rows ``{t, x, y, error_m}`` for estimates ``(t, x, y)`` inside the waypoints' time span;
+    an estimate ``(t, x, y, covariance)`` also gets ``nees``, its squared Mahalanobis distance
+    from the truth (2 on average when the covariance is honest)."""
     rows = []
-    for t, x, y in track:
+    for t, x, y, *cov in track:
         if not walk.t_start <= t <= walk.t_end:
             continue
         tx, ty = walk.truth_at(t)
-        rows.append({"t": round(float(t), 3), "x": round(float(x), 3), "y": round(float(y), 3),
-                     "error_m": round(math.hypot(x - tx, y - ty), 3)})
+        row = {"t": round(float(t), 3), "x": round(float(x), 3), "y": round(float(y), 3),
+               "error_m": round(math.hypot(x - tx, y - ty), 3)}
+        if cov:
+            d = np.array([x - tx, y - ty])
+            row["nees"] = round(float(d @ np.linalg.solve(np.asarray(cov[0], float), d)), 3)
+        rows.append(row)
     return rows
+
+
+def consistency(rows) -> dict:
+    """Mean and median NEES of rows that have one (empty when none has)."""
+    v = np.asarray([r["nees"] for r in rows if "nees" in r], dtype=float)
+    if len(v) == 0:
+        return {}
+    return {"nees_mean": round(float(v.mean()), 2), "nees_p50": round(float(np.median(v)), 2)}
 
 
 def summarise(errors) -> dict:

@@ -39,6 +39,7 @@ from .msft import (
     Walk,
     beacon_scans,
     calibration_window,
+    consistency,
     dead_reckon,
     detect_steps,
     errors_against,
@@ -321,9 +322,9 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
                 continue
             raise
         c = fix["covariance"]
-        track.append((s["t"], fix["x"], fix["y"], math.sqrt(max(c[0][0] + c[1][1], 0.0) / 2)))
-    rows = errors_against(p.walk, [r[:3] for r in track])
-    sigma = {round(float(r[0]), 3): round(r[3], 2) for r in track}
+        track.append((s["t"], fix["x"], fix["y"], c, math.sqrt(max(c[0][0] + c[1][1], 0.0) / 2)))
+    rows = errors_against(p.walk, [r[:4] for r in track])
+    sigma = {round(float(r[0]), 3): round(r[4], 2) for r in track}
     return [{**r, "sigma_m": sigma.get(r["t"])} for r in rows]
 
 
@@ -348,7 +349,8 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
     await device.close_session(session["id"])
 
     def scored(rows: list[dict]) -> list[dict]:
-        return errors_against(w, [(e["t"], e["x"], e["y"]) for e in rows if e.get("source") != "init"])
+        return errors_against(w, [(e["t"], e["x"], e["y"], e["covariance"]) for e in rows
+                                  if e.get("source") != "init"])
 
     return {"session_id": session["id"], "batches": len(batches), "track": scored(track),
             "smoothed": None if after is None else scored(after), "batch_estimates": errors_against(w, batch_rows)}
@@ -469,7 +471,10 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
 
 def tabulate(walks: list[dict]) -> tuple[dict, dict]:
     names = list(dict.fromkeys(k for w in walks for k in w["methods"]))
-    table = {k: summarise(r["error_m"] for w in walks for r in w["methods"].get(k, [])) for k in names}
+    table = {}
+    for k in names:
+        rows = [r for w in walks for r in w["methods"].get(k, [])]
+        table[k] = summarise(r["error_m"] for r in rows) | consistency(rows)
     per_walk = {w["walk"]: {k: summarise(r["error_m"] for r in v)["mean"] for k, v in w["methods"].items()}
                 for w in walks}
     return table, per_walk
@@ -488,9 +493,11 @@ def combine_folds(results: list[dict], fold_ids: list[int] | None = None) -> dic
 
 
 def markdown(result: dict) -> str:
-    lines = ["| method | estimates | mean m | p50 m | p90 m | max m |", "|---|---|---|---|---|---|"]
+    lines = ["| method | estimates | mean m | p50 m | p90 m | max m | NEES mean | NEES p50 |",
+             "|---|---|---|---|---|---|---|---|"]
     for k, s in sorted(result["table"].items(), key=lambda kv: (kv[1]["mean"] is None, kv[1]["mean"] or 0)):
-        lines.append(f"| {k} | {s['n']} | {s['mean']} | {s['p50']} | {s['p90']} | {s['max']} |")
+        lines.append(f"| {k} | {s['n']} | {s['mean']} | {s['p50']} | {s['p90']} | {s['max']} | "
+                     f"{s.get('nees_mean', '—')} | {s.get('nees_p50', '—')} |")
     names = list(result["table"])
     per = result["per_walk_mean"]
     lines += ["", f"Walks (of {len(per)}) where a method's mean error is below PDR alone / fingerprinting alone:", ""]
@@ -520,7 +527,10 @@ def main(a) -> int:
         raise CliError(f"no walk files under {a.data_dir}", EXIT_USAGE)
     if a.folds:
         only = getattr(a, "only_folds", None)
-        keep = list(range(a.folds)) if not only else [int(k) for k in only.split(",") if k.strip()]
+        try:
+            keep = list(range(a.folds)) if not only else [int(k) for k in only.split(",") if k.strip()]
+        except ValueError:
+            raise CliError(f"--only-folds {only!r}: a comma list of fold numbers", EXIT_USAGE) from None
         if not keep or any(not 0 <= k < a.folds for k in keep):
             raise CliError(f"--only-folds {only!r}: fold numbers from 0 to {a.folds - 1}", EXIT_USAGE)
         splits = [([f for i, f in enumerate(files) if i % a.folds != k], files[k::a.folds]) for k in keep]

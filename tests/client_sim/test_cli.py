@@ -113,3 +113,11 @@ def test_demo_on_a_taken_port_is_one_line_and_exit_1(capsys):
         port = taken.getsockname()[1]
         assert main(["demo", "--port", str(port), "--once"]) == 1
     assert one_error(capsys) == f"port {port} is in use (a server or demo still running?): stop it or pass --port"
+
+
+@pytest.mark.parametrize("only", ["a", "0,x", "7"])
+def test_msft_only_folds_that_are_not_fold_numbers_are_one_line_and_exit_2(capsys, tmp_path, only):
+    (tmp_path / "walk.txt").write_text("")
+    argv = ["msft", str(tmp_path), "--folds", "4", "--only-folds", only]  # refused before any server starts
+    assert main(argv) == 2
+    assert one_error(capsys).startswith(f"--only-folds {only!r}")

@@ -226,3 +226,17 @@ def test_tables_from_walk_results():
     assert both["table"] == table and [w["fold"] for w in both["walks"]] == [0, 1]
     md = markdown(both)
     assert md.splitlines()[2].startswith("| pdr-only | 3 | 2.0 |")  # best mean first
+
+
+def test_errors_against_scores_nees_when_the_estimate_has_a_covariance():
+    """An estimate 3 m east of the truth with σ = 1.5 m on x: NEES (3/1.5)² = 4; without a
+    covariance, no NEES; ``consistency`` averages the rows that have one."""
+    from client_sim.msft import Walk, consistency
+
+    empty = np.empty((0, 4))
+    walk = Walk("w", empty, empty, empty, empty, waypoints=np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 0.0]]))
+    rows = errors_against(walk, [(5.0, 8.0, 0.0, [[2.25, 0.0], [0.0, 1.0]]), (6.0, 6.0, 0.0)])
+    assert rows[0]["error_m"] == pytest.approx(3.0) and rows[0]["nees"] == pytest.approx(4.0)
+    assert "nees" not in rows[1]
+    assert consistency(rows) == {"nees_mean": 4.0, "nees_p50": 4.0}
+    assert consistency(rows[1:]) == {}
