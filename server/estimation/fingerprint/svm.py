@@ -18,10 +18,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from sklearn.model_selection import KFold, StratifiedKFold
-from sklearn.svm import SVC, SVR
 
 from .base import FingerprintModel, TrainingData
+
+# scikit-learn is imported where the SVM fits, not here: the registry imports this module in
+# every training job, and the default model (wknn) never needs it (45 MB, 1.6 s per job)
 
 C_GRID = (1.0, 10.0, 100.0)
 GAMMA_FACTORS = (0.5, 1.0, 2.0)
@@ -53,6 +54,8 @@ class SVMModel(FingerprintModel):
         return [(c, g) for c in Cs for g in gammas]
 
     def _fit(self, X, H, data: TrainingData) -> None:
+        from sklearn.svm import SVC, SVR
+
         t0 = time.perf_counter()
         deadline = t0 + self.time_budget_s
         rng = np.random.default_rng(self.seed)
@@ -89,6 +92,9 @@ class SVMModel(FingerprintModel):
         return np.sort(rng.choice(n, self.cv_rows, replace=False))
 
     def _search_svc(self, Z, y, rng, deadline):
+        from sklearn.model_selection import StratifiedKFold
+        from sklearn.svm import SVC
+
         grid = self._grid(Z)
         if len(grid) == 1:
             return grid[0]
@@ -109,6 +115,9 @@ class SVMModel(FingerprintModel):
         return best
 
     def _search_svr(self, Z, xy, rng, deadline):
+        from sklearn.model_selection import KFold
+        from sklearn.svm import SVR
+
         grid = self._grid(Z)
         idx = self._subsample(len(Z), rng)
         Zs, xys = Z[idx], xy[idx]
