@@ -72,6 +72,8 @@ from .posterior import reduce_posterior
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
 CV_FOLDS = 5
+#: held-out scans whose distances to a fold's map the cross-validation holds at once
+CV_QUERY_BLOCK = 64
 
 #: where ``_log_scores`` leaves each chunk's coverage distances while ``locate_covered`` waits for
 #: them (a context variable: one model instance serves several threads at once)
@@ -287,22 +289,24 @@ class WKNNModel(FingerprintModel):
                 if coverage:
                     nearest.extend(self._coverage_distance(*self._offset_query(q, None if Hq is None else Hq[i]))
                                    for i, q in enumerate(Q))
-                D = self._distances(Q, Hq)
-                D[self.row_group_[None, :] != grp_all[te][:, None]] = np.inf  # in place: D is large
-                ok = np.isfinite(D).any(axis=1)  # a floor with no map left says nothing
-                D, te = D[ok], te[ok]
-                if not len(te):
-                    continue
-                truth = self.rp_xy_[rp_all[te]]
-                order = self._nearest(D, max(grid))
-                for i, k in enumerate(grid):
-                    with np.errstate(divide="ignore"):
-                        pred = self._reduce(np.log(self._scores(D, k, order)))
-                    r = pred.xy - truth
-                    errs[i] += np.hypot(*r.T).sum()
-                    res[i].append(r)
-                    covs[i].append(pred.covariance)
-                count += len(te)
+                for c0 in range(0, len(te), CV_QUERY_BLOCK):  # D is (queries, fingerprints): a block at a time
+                    tq = te[c0: c0 + CV_QUERY_BLOCK]
+                    D = self._distances(Q[c0: c0 + CV_QUERY_BLOCK], None if Hq is None else Hq[c0: c0 + CV_QUERY_BLOCK])
+                    D[self.row_group_[None, :] != grp_all[tq][:, None]] = np.inf  # in place: D is large
+                    ok = np.isfinite(D).any(axis=1)  # a floor with no map left says nothing
+                    D, tq = D[ok], tq[ok]
+                    if not len(tq):
+                        continue
+                    truth = self.rp_xy_[rp_all[tq]]
+                    order = self._nearest(D, max(grid))
+                    for i, k in enumerate(grid):
+                        with np.errstate(divide="ignore"):
+                            pred = self._reduce(np.log(self._scores(D, k, order)))
+                        r = pred.xy - truth
+                        errs[i] += np.hypot(*r.T).sum()
+                        res[i].append(r)
+                        covs[i].append(pred.covariance)
+                    count += len(tq)
         finally:
             self._set_columns(XT_all, H_all, rp_all, grp_all)
         held = [(np.concatenate(r) if r else np.zeros((0, 2)), np.concatenate(c) if c else np.zeros((0, 2, 2)))
