@@ -5,9 +5,10 @@
 Starts a real server process on a fresh SQLite file, uploads the training file, trains
 the model and waits for it, then sends held-back scans (rows of the same file) to
 ``locate``: first one at a time (latency p50/p99), then from concurrent clients
-(fixes per second), then as many ``GET /healthz`` from as many clients (the same
-server's capacity for a request that does no work: the HTTP stack's ceiling, measured
-in the same run, so the ratio locate / healthz does not depend on the machine's load).
+(fixes per second), alternating with as many ``GET /healthz`` from as many clients in
+``ROUNDS`` rounds (the same server's capacity for a request that does no work: the HTTP
+stack's ceiling, measured in the same run and interleaved, so the ratio locate / healthz
+does not depend on the machine's load, which other work on it changes).
 The in-process baseline is the same model's answer computed directly (no HTTP, no
 database): ``locate``, and for a model measuring coverage (wknn) ``locate_covered``,
 what the server computes per request; the ratio is what the service adds.
@@ -36,6 +37,7 @@ from localizer_tools.upload import upload  # noqa: E402
 from server.estimation.fingerprint import from_bytes  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
+ROUNDS = 4  # closed-loop rounds of locate, each followed by as many healthz
 
 
 def query_scans(path: Path, n: int, seed: int = 0) -> list[dict[str, float]]:
@@ -93,8 +95,11 @@ def main() -> None:
             locate_url = f"/api/v1/sites/{site['id']}/locate"
             asyncio.run(fire(base, locate_url, scans[:50], 1))  # warm every worker's model cache
             _, serial = asyncio.run(fire(base, locate_url, scans[: args.requests // 4], 1))
-            elapsed, _ = asyncio.run(fire(base, locate_url, scans, args.concurrency))
-            health_s = asyncio.run(fire_healthz(base, len(scans), args.concurrency))
+            elapsed = health_s = 0.0
+            for r in range(ROUNDS):
+                part = scans[r::ROUNDS]
+                elapsed += asyncio.run(fire(base, locate_url, part, args.concurrency))[0]
+                health_s += asyncio.run(fire_healthz(base, len(part), args.concurrency))
             blob = _artifact(url, model["id"])
         finally:
             admin.close()

@@ -537,7 +537,7 @@ class WKNNModel(FingerprintModel):
         ok = np.isfinite(d)
         o, d = o[ok], d[ok]
         if len(self.group_floor_) > 1:
-            if len(np.unique(self.group_building_)) > 1:
+            if self.group_building_.min() != self.group_building_.max():
                 b = self._vote_small(self.row_building_[o[: self.building_k]], d[: self.building_k])
                 keep = self.row_building_[o] == b
                 if keep.sum() < max(self.floor_k, self.k_):
@@ -574,11 +574,10 @@ class WKNNModel(FingerprintModel):
 
     @staticmethod
     def _vote_small(labels: np.ndarray, d: np.ndarray):
-        """The label with the largest sum of 1/d weights (ties: the smallest label, as
-        argmax over a vote table does)."""
-        values, inv = np.unique(labels, return_inverse=True)
-        votes = np.bincount(inv, weights=1.0 / (d + 1e-6), minlength=len(values))
-        return values[int(np.argmax(votes))]
+        """The label (an integer) with the largest sum of 1/d weights (ties: the smallest
+        label, as argmax over a vote table does)."""
+        low = labels.min()
+        return low + int(np.argmax(np.bincount(labels - low, weights=1.0 / (d + 1e-6))))
 
     def _log_scores(self, Q, Hq, mask):
         """Per query: offset-corrected distances over its candidates, then the hierarchy;
