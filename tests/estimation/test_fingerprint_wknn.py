@@ -21,22 +21,15 @@ from server.estimation.fingerprint import (
 )
 from server.estimation.fingerprint.artifact import LIBRARY_VERSION, MAGIC
 from server.estimation.fingerprint.calibration import IDENTITY
-from tests.helpers.synthetic import make_site
-
-
-def _rename(site, prefix):
-    for t in site.transmitters:
-        kind, name = t["id"].split(":", 1)
-        t["id"] = f"{kind}:{prefix}{name}"
-    return site
+from tests.helpers.synthetic import make_site, with_prefix
 
 
 @pytest.fixture(scope="module")
 def campus():
     """Two buildings 60 m apart, both with floors 0 and 1 and their own transmitters;
     building 1's scans also hear one of building 0's access points, weakly."""
-    b0 = _rename(make_site(seed=11, noise_db=2.0), "b0")
-    b1 = _rename(make_site(seed=12, noise_db=2.0), "b1")
+    b0 = with_prefix(make_site(seed=11, noise_db=2.0), "b0")
+    b1 = with_prefix(make_site(seed=12, noise_db=2.0), "b1")
     shared = dict(b0.transmitters[0])
     rows = []
     for b, site in ((0, b0), (1, b1)):
@@ -269,7 +262,7 @@ def _reference_case():
     subset of the fingerprints), the model fitted on it, and its queries: noisy scans at
     every reference point, some shifted by ±8 dB, scans hearing one or two transmitters,
     and (x, y, floor, radius) restrictions for a third of them."""
-    sites = [_rename(make_site(nx=8, ny=5, spacing_m=4.0, n_wifi=10, n_ble=6, seed=21 + b, noise_db=2.0,
+    sites = [with_prefix(make_site(nx=8, ny=5, spacing_m=4.0, n_wifi=10, n_ble=6, seed=21 + b, noise_db=2.0,
                                sensitivity_dbm=-80.0), f"b{b}") for b in (0, 1)]
     rows = []
     for b, site in enumerate(sites):

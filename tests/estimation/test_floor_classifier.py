@@ -6,25 +6,18 @@ import pytest
 
 from server.estimation.fingerprint import FingerprintSet, KNNModel, from_bytes, make_model, to_bytes
 from server.estimation.fingerprint.base import FLOOR_CLASSIFIERS, FloorKNN
-from tests.helpers.synthetic import make_site
+from tests.helpers.synthetic import make_site, with_prefix
 
 #: building → its floor levels (building 1's differ, so a floor of the wrong building shows)
 FLOORS = {0: (0, 1, 2), 1: (1, 2, 3)}
 CLASSIFIERS = [c for c in FLOOR_CLASSIFIERS if c is not None]
 
 
-def _rename(site, prefix):
-    for t in site.transmitters:
-        kind, name = t["id"].split(":", 1)
-        t["id"] = f"{kind}:{prefix}{name}"
-    return site
-
-
 @pytest.fixture(scope="module")
 def campus():
     """Two buildings 60 m apart with their own transmitters; building 1's scans also hear
     one of building 0's access points weakly."""
-    sites = {b: _rename(make_site(floors=FLOORS[b], n_wifi=9, n_ble=3, seed=20 + b, noise_db=2.0), f"b{b}")
+    sites = {b: with_prefix(make_site(floors=FLOORS[b], n_wifi=9, n_ble=3, seed=20 + b, noise_db=2.0), f"b{b}")
              for b in FLOORS}
     leak = sites[0].transmitters[0]["id"]
     rows = []

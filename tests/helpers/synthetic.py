@@ -59,6 +59,15 @@ class SyntheticSite:
         return FingerprintSet.from_rows(rows, tx_ids=[t["id"] for t in self.transmitters])
 
 
+def with_prefix(site, prefix: str):
+    """``site`` with every transmitter id's name prefixed (``wifi:ap0`` → ``wifi:b1ap0``), so
+    two synthetic buildings do not share transmitters; returns the same site."""
+    for t in site.transmitters:
+        kind, name = t["id"].split(":", 1)
+        t["id"] = f"{kind}:{prefix}{name}"
+    return site
+
+
 def make_site(nx: int = 5, ny: int = 4, spacing_m: float = 3.0, floors=(0, 1), n_wifi: int = 6, n_ble: int = 6,
               seed: int = 0, **kw) -> SyntheticSite:
     """Transmitters spread over the floors' rectangle; reference points on a grid."""

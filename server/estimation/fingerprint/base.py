@@ -50,16 +50,6 @@ def stratified_rows(group: np.ndarray, cap: int, seed: int = 0) -> np.ndarray:
                                    for g, q in enumerate(quota)]))
 
 
-def decode_rss(encoder: RssEncoder, Q: np.ndarray) -> np.ndarray:
-    """Features made by ``encoder`` back to dBm (NaN = not heard)."""
-    v = np.asarray(Q, dtype=np.float64)
-    if encoder.missing == "powed":
-        v = v ** (1.0 / encoder.beta)
-    elif encoder.missing == "exponential":
-        v = np.where(v > 0, np.log(np.maximum(v, 1e-12)) * encoder.alpha / -encoder.floor_dbm + 1.0, 0.0)
-    return np.where(v > 0, encoder.floor_dbm + v * (-encoder.floor_dbm), np.nan)
-
-
 class FloorKNN:
     """(building, floor) of a scan by its nearest reference points, building first.
 
@@ -112,7 +102,7 @@ class FloorKNN:
         vars(self).update(state)
 
     def _features(self, design: np.ndarray) -> np.ndarray:
-        V = self.encoder.transform(decode_rss(self.input_encoder, np.asarray(design)[:, : self.n_rss]))
+        V = self.encoder.transform(self.input_encoder.decode(np.asarray(design)[:, : self.n_rss]))
         return V / np.maximum(V.sum(axis=1, keepdims=True), np.float32(1e-12))
 
     def fit(self, design: np.ndarray, row_rp: np.ndarray, rp_group: np.ndarray, group_building: np.ndarray,

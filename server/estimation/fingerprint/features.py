@@ -67,6 +67,17 @@ class RssEncoder:
             v = np.where(v > 0, np.exp((v - 1.0) * scale), 0.0)
         return v.astype(np.float32)
 
+    def decode(self, features: np.ndarray) -> np.ndarray:
+        """Features back to dBm (float64; NaN = not heard): the inverse of ``transform`` for
+        readings above ``floor_dbm`` (a phone's offset is estimated on these)."""
+        Q = np.asarray(features)
+        v = np.asarray(Q, dtype=np.float64)
+        if self.missing == "powed":
+            v = v ** (1.0 / self.beta)
+        elif self.missing == "exponential":
+            v = np.where(v > 0, np.log(np.maximum(v, 1e-12)) * self.alpha / -self.floor_dbm + 1.0, 0.0)
+        return np.where(Q > 0, self.floor_dbm + v * (-self.floor_dbm), np.nan)
+
 
 def heading_features(heading_deg) -> np.ndarray:
     """(n,) degrees → (n, 2) ``[sin h, cos h]``; unknown heading (NaN/None) → ``[0, 0]``,

@@ -384,7 +384,7 @@ class WKNNModel(FingerprintModel):
         k = max(1, min(self.offset_neighbours, self.XT_.shape[1]))
         near = cand[_smallest(d, k)]
         cols = np.flatnonzero(q > 0)  # the heard readings alone: the others decode to NaN
-        diff = self._decode(self.XT_[np.ix_(cols, near)].T) - self._decode(q[cols][None])
+        diff = self.encoder_.decode(self.XT_[np.ix_(cols, near)].T) - self.encoder_.decode(q[cols][None])
         diff = diff[~np.isnan(diff)]
         return float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db)) if len(diff) >= 3 else 0.0
 
@@ -392,7 +392,7 @@ class WKNNModel(FingerprintModel):
         """``_query_distances`` with the per-query RSS offset (see the module docstring)."""
         cand, d = self._query_distances(q, hq)
         if self.offset_estimate:
-            r0 = self._decode(q[None])
+            r0 = self.encoder_.decode(q[None])
             total, qs = 0.0, q
             for _ in range(self.offset_iterations):
                 delta = self._estimate_offset(qs, cand, d)
@@ -403,7 +403,7 @@ class WKNNModel(FingerprintModel):
                 cand, d = self._query_distances(qs, hq)
         if self.offset_search_db <= 0:
             return cand, d
-        r = self._decode(q[None])
+        r = self.encoder_.decode(q[None])
         best = self._coverage_distance(cand, d)
         steps = np.arange(self.offset_step_db, self.offset_search_db + 1e-9, self.offset_step_db)
         for delta in np.concatenate([steps, -steps]):
@@ -412,16 +412,6 @@ class WKNNModel(FingerprintModel):
             if m < best:
                 cand, d, best = c2, d2, m
         return cand, d
-
-    def _decode(self, Q: np.ndarray) -> np.ndarray:
-        """Encoded features back to dBm (NaN = not heard), for the offset search."""
-        v = np.asarray(Q, dtype=np.float64)
-        if self.encoder_.missing == "powed":
-            v = v ** (1.0 / self.encoder_.beta)
-        elif self.encoder_.missing == "exponential":
-            v = np.where(v > 0, np.log(np.maximum(v, 1e-12)) * self.encoder_.alpha / -self.encoder_.floor_dbm + 1.0, 0.0)
-        dbm = self.encoder_.floor_dbm + v * (-self.encoder_.floor_dbm)
-        return np.where(np.asarray(Q) > 0, dbm, np.nan)
 
     # ---- hierarchy ---------------------------------------------------------------------
     @staticmethod
