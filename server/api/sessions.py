@@ -131,7 +131,7 @@ def estimate_out(e: Estimate) -> EstimateOut:
 
 def estimate_json(e: Estimate) -> dict[str, Any]:
     """``estimate_out(e)`` as JSON-ready data, built directly for the long lists (a track page,
-    a session list): 1,000 pydantic models cost ≈ 10 ms, these dicts ≈ 1.5 ms. Tests pin each
+    the live streams): 1,000 pydantic models cost ≈ 10 ms, these dicts ≈ 1.5 ms. Tests pin each
     ``*_json`` equal to its schema's dump."""
     return {"t": e.t, "x": e.x, "y": e.y, "floor": e.floor, "building": e.building,
             "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}

@@ -215,11 +215,6 @@ def coverage(s: Session, site_id: int, transmitter_id: str, floor: int, building
     ]
 
 
-def training_rows(s: Session, site_id: int, include_crowd: bool) -> list[FingerprintRecord]:
-    """`stream_training_rows` as one list (a small site)."""
-    return list(stream_training_rows(s, site_id, include_crowd))
-
-
 def stream_training_rows(
     s: Session, site_id: int, include_crowd: bool, chunk: int = 500,
 ) -> Iterator[FingerprintRecord]:

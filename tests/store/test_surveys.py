@@ -64,8 +64,8 @@ def test_training_rows_are_the_fingerprints_with_their_labels(db, site_id):
             {"site_id": site_id, "source": "crowd", "floor": 0, "x": 7.0, "y": 7.0, "rss": {"wifi:ap1": -60.0}}
         ])
     with db.transaction() as s:
-        rows = surveys.training_rows(s, site_id, include_crowd=False)
-        with_crowd = surveys.training_rows(s, site_id, include_crowd=True)
+        rows = list(surveys.stream_training_rows(s, site_id, include_crowd=False))
+        with_crowd = list(surveys.stream_training_rows(s, site_id, include_crowd=True))
     assert rows == [  # headings are stored in [0, 360)
         FingerprintRecord(0.0, 0.0, 0, survey[0].rss, heading_deg=270.0, t=1.5, device="pixel", label="A1"),
         FingerprintRecord(3.0, 4.0, 1, survey[1].rss),
