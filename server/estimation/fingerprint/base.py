@@ -26,6 +26,7 @@ from server.estimation.types import Candidate, Fix
 
 from .calibration import IDENTITY, CovarianceCalibration
 from .dataset import FingerprintSet, ReferencePoints
+from .distance import weighted_vote
 from .features import RssEncoder, heading_features
 from .posterior import Prediction, reduce_posterior
 
@@ -165,15 +166,8 @@ class FloorKNN:
 
     def _vote(self, D: np.ndarray, labels: np.ndarray) -> np.ndarray:
         """Per row, the label of the ``k`` nearest finite columns with the largest 1/d sum."""
-        n = len(D)
-        k = max(1, min(self.k, D.shape[1]))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (n, 1))
-        d = np.take_along_axis(D, idx, axis=1)
         values, inv = np.unique(labels, return_inverse=True)
-        votes = np.zeros((n, len(values)))
-        np.add.at(votes, (np.broadcast_to(np.arange(n)[:, None], idx.shape), np.asarray(inv)[idx]),
-                  np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0))
-        return values[np.argmax(votes, axis=1)]
+        return values[weighted_vote(D, np.asarray(inv).reshape(-1), self.k, len(values))]
 
     def svc_groups(self, design: np.ndarray, allowed: np.ndarray) -> np.ndarray:
         """Per query, the group with the most one-vs-one votes of the SVC over the pairs of

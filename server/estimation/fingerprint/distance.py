@@ -1,8 +1,11 @@
-"""Squared Euclidean distances from queries to many fingerprints, using sparsity.
+"""Distances from queries to many fingerprints, and the k nearest of them.
 
 Features are 0 for "not heard" and a scan hears a few dozen of hundreds of
 transmitters, so the fingerprint matrix is kept in CSR form and
-``|q − f|² = |q|² + |f|² − 2 q·f`` costs one sparse product per batch.
+``|q − f|² = |q|² + |f|² − 2 q·f`` costs one sparse product per batch
+(``SquaredDistance``). ``smallest_columns``, ``nearest_columns`` and ``weighted_vote`` pick
+and vote from a (queries × fingerprints) distance matrix, for the models and the floor
+classifier alike.
 """
 
 from __future__ import annotations
@@ -30,3 +33,27 @@ class SquaredDistance:
             d2 += (hq**2).sum(axis=1)[:, None] + self.h2[None, :] - 2.0 * hq @ self.H.T
         np.maximum(d2, 0.0, out=d2)
         return d2
+
+
+def smallest_columns(D: np.ndarray, k: int) -> np.ndarray:
+    """(n, k') column indices of each row's k' = min(k, columns) smallest values (k' ≥ 1), in no order."""
+    k = max(1, min(k, D.shape[1]))
+    return np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
+
+
+def nearest_columns(D: np.ndarray, k: int) -> np.ndarray:
+    """``smallest_columns`` with each row's indices nearest first."""
+    idx = smallest_columns(D, k)
+    return np.take_along_axis(idx, np.argsort(np.take_along_axis(D, idx, axis=1), axis=1), axis=1)
+
+
+def weighted_vote(D: np.ndarray, labels: np.ndarray, k: int, n_labels: int) -> np.ndarray:
+    """Per row, the label (0 … n_labels − 1, ``labels`` per column) with the largest sum of 1/d
+    weights among the row's k nearest columns (an infinite distance weighs nothing; ties: the
+    smallest label)."""
+    idx = smallest_columns(D, k)
+    d = np.take_along_axis(D, idx, axis=1)
+    w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
+    votes = np.zeros((len(D), n_labels))
+    np.add.at(votes, (np.broadcast_to(np.arange(len(D))[:, None], idx.shape), labels[idx]), w)
+    return np.argmax(votes, axis=1)

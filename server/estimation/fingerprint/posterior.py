@@ -89,3 +89,17 @@ def reduce_posterior(
         floor=group_floor[g_best], building=group_building[g_best],
         covariance=cov, best_rp=top[:, 0], top_rp=top, top_p=top_p,
     )
+
+
+def columns_back(pred: Prediction, cols: np.ndarray, n_rp: int, n_candidates: int) -> Prediction:
+    """``pred``, reduced over the reference points ``cols`` only (of ``n_rp``), with its indices
+    mapped back to all of them: candidates without probability become −1 and the list is
+    padded with (−1, 0) to min(``n_candidates``, ``n_rp``)."""
+    pred.best_rp = cols[pred.best_rp]
+    top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
+    pad = min(n_candidates, n_rp) - top.shape[1]
+    if pad > 0:
+        top = np.concatenate([top, np.full((len(top), pad), -1)], axis=1)
+        pred.top_p = np.concatenate([pred.top_p, np.zeros((len(top), pad))], axis=1)
+    pred.top_rp = top
+    return pred

@@ -55,7 +55,8 @@ from scipy.spatial import cKDTree
 from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
 from .dataset import ReferencePoints, rp_display_label
-from .posterior import reduce_posterior
+from .distance import nearest_columns
+from .posterior import columns_back, reduce_posterior
 
 CV_FOLDS = 5
 #: kernel weights beyond this many length scales are dropped (e^-4.5 ≈ 1 %)
@@ -250,7 +251,7 @@ class RadioMapModel(FingerprintModel):
                 cells, cell_group, GT, g_sum = self._map(xy, group, weight, F, scale, cols)
                 D = self._distances(X[te][:, cols], GT, g_sum)
                 D[cell_group[None, :] != data.row_group[te][:, None]] = np.inf
-                order = self._nearest(D, max(ks))
+                order = nearest_columns(D, max(ks))
                 for j, k in enumerate(ks):
                     with np.errstate(divide="ignore"):
                         pred = self._reduce_over(np.log(self._scores(D, k, self.weight_power, order)), cells,
@@ -284,17 +285,10 @@ class RadioMapModel(FingerprintModel):
             out[i] = (tot - 2.0 * inter) / np.maximum(tot, 1e-9)
         return out
 
-    @staticmethod
-    def _nearest(D: np.ndarray, k: int) -> np.ndarray:
-        """(nq, k) column indices of each row's k smallest distances, nearest first."""
-        k = max(1, min(k, D.shape[1]))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
-        return np.take_along_axis(idx, np.argsort(np.take_along_axis(D, idx, axis=1), axis=1), axis=1)
-
     def _scores(self, D: np.ndarray, k: int, power: float, order: np.ndarray | None = None) -> np.ndarray:
         """(nq, c) weights 1/d^power of each query's k nearest cells (from ``order``, each
         row's nearest first, when given), 0 elsewhere."""
-        idx = (self._nearest(D, k) if order is None else order)[:, :k]
+        idx = (nearest_columns(D, k) if order is None else order)[:, :k]
         d = np.take_along_axis(D, idx, axis=1)
         scores = np.zeros(D.shape)
         np.put_along_axis(scores, idx, np.where(np.isfinite(d), (d + 1e-6) ** -power, 0.0), axis=1)
@@ -308,14 +302,7 @@ class RadioMapModel(FingerprintModel):
             cols = np.arange(logs.shape[1])
         pred = reduce_posterior(logs[:, cols], cells[cols], cell_group[cols], self.group_floor_,
                                 self.group_building_, self.cov_floor_m_, self.n_candidates)
-        pred.best_rp = cols[pred.best_rp]
-        top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
-        pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
-        if pad > 0:
-            top = np.pad(top, ((0, 0), (0, pad)), constant_values=-1)
-            pred.top_p = np.pad(pred.top_p, ((0, 0), (0, pad)))
-        pred.top_rp = top
-        return pred
+        return columns_back(pred, cols, logs.shape[1], self.n_candidates)
 
     def _reduce(self, logs: np.ndarray):
         return self._reduce_over(logs, self.rp_xy_, self.rp_group_)

@@ -67,7 +67,8 @@ from server.estimation.types import Fix
 
 from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
-from .posterior import reduce_posterior
+from .distance import nearest_columns, weighted_vote
+from .posterior import columns_back, reduce_posterior
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
@@ -298,7 +299,7 @@ class WKNNModel(FingerprintModel):
                     if not len(tq):
                         continue
                     truth = self.rp_xy_[rp_all[tq]]
-                    order = self._nearest(D, max(grid))
+                    order = nearest_columns(D, max(grid))
                     for i, k in enumerate(grid):
                         with np.errstate(divide="ignore"):
                             pred = self._reduce(np.log(self._scores(D, k, order)))
@@ -414,17 +415,6 @@ class WKNNModel(FingerprintModel):
         return cand, d
 
     # ---- hierarchy ---------------------------------------------------------------------
-    @staticmethod
-    def _vote(D: np.ndarray, labels: np.ndarray, k: int, n_labels: int) -> np.ndarray:
-        n = len(D)
-        k = max(1, min(k, D.shape[1]))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (n, 1))
-        d = np.take_along_axis(D, idx, axis=1)
-        w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
-        votes = np.zeros((n, n_labels))
-        np.add.at(votes, (np.broadcast_to(np.arange(n)[:, None], idx.shape), labels[idx]), w)
-        return np.argmax(votes, axis=1)
-
     def _restrict(self, D: np.ndarray) -> np.ndarray:
         """Building, then floor: distances outside the chosen (building, floor) → inf."""
         if len(self.group_floor_) <= 1:
@@ -432,21 +422,14 @@ class WKNNModel(FingerprintModel):
         buildings = np.unique(self.group_building_)
         if len(buildings) > 1:
             b_index = np.searchsorted(buildings, self.row_building_)
-            b = buildings[self._vote(D, b_index, self.building_k, len(buildings))]
+            b = buildings[weighted_vote(D, b_index, self.building_k, len(buildings))]
             D = np.where(self.row_building_[None, :] == b[:, None], D, np.inf)
-        g = self._vote(D, self.row_group_, self.floor_k, len(self.group_floor_))
+        g = weighted_vote(D, self.row_group_, self.floor_k, len(self.group_floor_))
         return np.where(self.row_group_[None, :] == g[:, None], D, np.inf)
-
-    @staticmethod
-    def _nearest(D: np.ndarray, k: int) -> np.ndarray:
-        """(n, k) column indices of the k smallest of each row, nearest first."""
-        k = max(1, min(k, D.shape[1]))
-        idx = np.argpartition(D, k - 1, axis=1)[:, :k] if k < D.shape[1] else np.tile(np.arange(D.shape[1]), (len(D), 1))
-        return np.take_along_axis(idx, np.argsort(np.take_along_axis(D, idx, axis=1), axis=1), axis=1)
 
     def _scores(self, D: np.ndarray, k: int, order: np.ndarray | None = None) -> np.ndarray:
         n = len(D)
-        idx = (self._nearest(D, k) if order is None else order)[:, :k]
+        idx = (nearest_columns(D, k) if order is None else order)[:, :k]
         d = np.take_along_axis(D, idx, axis=1)
         w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
         scores = np.zeros((n, len(self.rp_xy_)))
@@ -490,14 +473,7 @@ class WKNNModel(FingerprintModel):
             group_floor, group_building = group_floor[groups], group_building[groups]
         pred = reduce_posterior(logs[:, cols], self.rp_xy_[cols], rp_group.reshape(-1), group_floor,
                                 group_building, self.cov_floor_m_, self.n_candidates)
-        pred.best_rp = cols[pred.best_rp]
-        top = np.where(pred.top_p > 0, cols[pred.top_rp], -1)
-        pad = min(self.n_candidates, logs.shape[1]) - top.shape[1]
-        if pad > 0:
-            top = np.concatenate([top, np.full((len(top), pad), -1)], axis=1)
-            pred.top_p = np.concatenate([pred.top_p, np.zeros((len(top), pad))], axis=1)
-        pred.top_rp = top
-        return pred
+        return columns_back(pred, cols, logs.shape[1], self.n_candidates)
 
     def _hierarchy_m(self) -> int:
         return min(self.XT_.shape[1], max(self.CANDIDATES, self.building_k, self.floor_k, self.k_))
@@ -512,7 +488,7 @@ class WKNNModel(FingerprintModel):
         m = self._hierarchy_m()
         if m >= n_rows:
             return self._scores(self._restrict(D), self.k_)
-        order = self._nearest(D, m)
+        order = nearest_columns(D, m)
         dist = np.take_along_axis(D, order, axis=1)
         scores = np.zeros((n, len(self.rp_xy_)))
         for i in range(n):
