@@ -161,6 +161,17 @@ def test_registry_rejects_unknown_names():
     assert {"nbc", "knn", "svm", "kde", "tkbe", "propagation"} <= set(ALGORITHMS)
 
 
+@pytest.mark.parametrize("algorithm, params", [
+    ("knn", {"k": 0}), ("knn", {"k": -2}), ("knn", {"floor_k": 0}), ("tkbe", {"n_preselect": 0}),
+    ("wknn", {"k": 0}), ("wknn", {"building_k": 0}), ("wknn", {"floor_k": -1}), ("wknn", {"k_grid": [0, 3]}),
+    ("wknn", {"k_grid": []}),
+])
+def test_neighbour_counts_below_one_are_refused(algorithm, params):
+    """(They used to fit, and answer the centroid of the site for every scan.)"""
+    with pytest.raises(ValueError, match="at least 1"):
+        make_model(algorithm, params)
+
+
 @pytest.mark.parametrize("clf", ["svc", "trees"])
 def test_dedicated_floor_classifier(clf, site, survey):
     model = KNNModel(floor_classifier=clf).fit(survey)

@@ -32,6 +32,8 @@ class KNNModel(FingerprintModel):
         if weights not in WEIGHTS:
             raise ValueError(f"weights must be one of {WEIGHTS}")
         self.k = int(k)
+        if self.k < 1 or (floor_k is not None and int(floor_k) < 1):
+            raise ValueError("k and floor_k must be at least 1")
         self.weights = weights
         self.floor_k = floor_k
 

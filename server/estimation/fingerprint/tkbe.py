@@ -24,6 +24,8 @@ class TKBEModel(NBCModel):
     def __init__(self, n_preselect: int = 15, temperature: float = 1.0, prior_strength: float = 2.0, **common):
         super().__init__(temperature=temperature, prior_strength=prior_strength, **common)
         self.n_preselect = int(n_preselect)
+        if self.n_preselect < 1:
+            raise ValueError("n_preselect must be at least 1")
 
     def _fit(self, X, H, data: TrainingData) -> None:
         super()._fit(X, H, data)

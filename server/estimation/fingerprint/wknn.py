@@ -138,6 +138,9 @@ class WKNNModel(FingerprintModel):
         self.min_tx_rows = int(min_tx_rows)
         self.dedupe = bool(dedupe)
         self.k_grid = tuple(int(v) for v in k_grid)
+        if min((self.building_k, self.floor_k, *self.k_grid, *(() if self.k is None else (self.k,)))) < 1 \
+                or not self.k_grid:
+            raise ValueError("k, building_k, floor_k and every k_grid value must be at least 1 (k_grid not empty)")
         if calibrate not in CALIBRATIONS:
             raise ValueError(f"calibrate must be one of {CALIBRATIONS}")
         self.calibrate = calibrate
