@@ -10,15 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from .base import FingerprintModel, TrainingData
-from .distance import SquaredDistance
+from .distance import SquaredDistance, smallest_columns
 
 WEIGHTS = ("uniform", "distance")
-
-
-def _top_k(d2: np.ndarray, k: int) -> np.ndarray:
-    k = min(k, d2.shape[1])
-    idx = np.argpartition(d2, k - 1, axis=1)[:, :k] if k < d2.shape[1] else np.tile(np.arange(d2.shape[1]), (len(d2), 1))
-    return idx
 
 
 class KNNModel(FingerprintModel):
@@ -56,13 +50,13 @@ class KNNModel(FingerprintModel):
         n_groups = len(self.group_floor_)
         if n_groups > 1:
             fk = self.floor_k if self.floor_k is not None else max(self.k, 10)
-            idx = _top_k(d2, fk)
+            idx = smallest_columns(d2, fk)
             w = self._weights(d2[rows, idx])
             votes = np.zeros((n, n_groups))
             np.add.at(votes, (np.broadcast_to(rows, idx.shape), self.row_group_[idx]), w)
             g = np.argmax(votes, axis=1)
             d2 = np.where(self.row_group_[None, :] == g[:, None], d2, np.inf)
-        idx = _top_k(d2, self.k)
+        idx = smallest_columns(d2, self.k)
         w = self._weights(d2[rows, idx])
         scores = np.zeros((n, len(self.rp_xy_)))
         np.add.at(scores, (np.broadcast_to(rows, idx.shape), self.row_rp_[idx]), w)

@@ -13,8 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import TrainingData
-from .distance import SquaredDistance
-from .knn import _top_k
+from .distance import SquaredDistance, smallest_columns
 from .nbc import NBCModel
 
 
@@ -38,7 +37,7 @@ class TKBEModel(NBCModel):
         d2 = self.rp_dist_(Q, Hq)
         if mask is not None:
             d2 = np.where(mask, d2, np.inf)
-        idx = _top_k(d2, self.n_preselect)
+        idx = smallest_columns(d2, self.n_preselect)
         keep = np.zeros(d2.shape, dtype=bool)
         np.put_along_axis(keep, idx, True, axis=1)
         keep &= np.isfinite(d2)
