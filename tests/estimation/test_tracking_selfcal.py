@@ -142,9 +142,12 @@ def test_pf_particles_carry_their_own_calibration():
     t.predict(Step(0, 10.0, 0.0, length_std_m=1e-9, heading_std_deg=1e-9))
     # each particle moved 10·s_i along its own heading bias b_i
     moved = t.particles[:, :2] - before[:, :2]
-    # (particles are kept as float16 offsets from their mean: ≤ 4 mm within 8 m of it)
-    np.testing.assert_allclose(moved[:, 0], 10 * before[:, 3] * np.sin(before[:, 2]), atol=4e-3)
-    np.testing.assert_allclose(moved[:, 1], 10 * before[:, 3] * np.cos(before[:, 2]), atol=4e-3)
+    # (positions are kept on a grid of 256 values per column spanning the cloud: within half
+    # its step, ≈ 2.5 cm here; b and s did not change)
+    half = 0.5 * t._grid[1] + 1e-9
+    np.testing.assert_allclose(moved[:, 0], 10 * before[:, 3] * np.sin(before[:, 2]), rtol=0, atol=half[0])
+    np.testing.assert_allclose(moved[:, 1], 10 * before[:, 3] * np.cos(before[:, 2]), rtol=0, atol=half[1])
+    assert half[0] < 0.03
 
 
 @pytest.mark.parametrize("name", AUGMENTED)
