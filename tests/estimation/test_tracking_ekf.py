@@ -39,13 +39,14 @@ def test_ekf_heading_noise_grows_cross_track_variance_with_step_length():
 
 
 def test_ekf_range_update_by_hand():
-    # x⁻ = (0, 0), P = I, beacon (2, 0), r = 1.5 m, σr = 0.5 m.
-    # h = 2, H = (x − b)/‖x − b‖ = (−1, 0), S = 1 + 0.25 = 1.25, K = PHᵀ/S = (−0.8, 0),
-    # y = 1.5 − 2 = −0.5, x⁺ = (0.4, 0), P⁺ = diag(1 − 0.8, 1) = diag(0.2, 1).
+    # x⁻ = (0, 0), P = I, beacon (2, 0), r = 1.5 m, σr = 0.5 m, in log-range:
+    # z = ln 1.5, R = (0.5/1.5)² = 1/9; h = ln 2, H = (x − b)ᵀ/‖x − b‖² = (−0.5, 0),
+    # S = 0.25 + 1/9 = 13/36, K = PHᵀ/S = (−18/13, 0), y = ln(1.5/2),
+    # x⁺ = (−18/13·ln 0.75, 0), P⁺ = diag(1 − 9/13, 1).
     t = make_tracker("ekf-xy", [0, 0], np.eye(2))
     assert t.update_range([2.0, 0.0], 1.5, 0.5) is True
-    np.testing.assert_allclose(t.mean, [0.4, 0.0], atol=1e-12)
-    np.testing.assert_allclose(t.covariance, np.diag([0.2, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(t.mean, [-18 / 13 * math.log(0.75), 0.0], atol=1e-12)
+    np.testing.assert_allclose(t.covariance, np.diag([4 / 13, 1.0]), atol=1e-12)
 
 
 def test_ekf_range_ignored_beyond_3m():

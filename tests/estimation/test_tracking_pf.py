@@ -1,12 +1,14 @@
 """Particle filter: walls kill particles, likelihood weighting, resampling equals filterpy."""
 
+import math
+
 import numpy as np
 import pytest
 from filterpy.monte_carlo import systematic_resample as filterpy_systematic_resample
 
 from server.estimation.tracking import make_tracker
 from server.estimation.tracking.geometry import crosses_walls
-from server.estimation.tracking.resampling import systematic_resample
+from server.estimation.tracking.resampling import effective_sample_size, systematic_resample
 from server.estimation.types import Fix, Step
 
 WALL = [[-10.0, 1.0, 10.0, 1.0]]  # an east-west wall 1 m north of the start
@@ -81,6 +83,33 @@ def test_pf_range_update_gated_and_wall_side():
     assert t.update_range([0, 0], 3.5, 0.5) is False
     assert t.update_range([0, 0], 0.5, 0.2, on_wall=[-5, 0, 5, 0]) is True
     assert np.all(t.particles[np.abs(t.particles[:, 0]) <= 5, 1] > 0)
+
+
+def test_pf_range_likelihood_is_log_normal():
+    # A range r ± σr weighs a particle at distance d by exp(−½ (ln d − ln r)² / (σr/r)²).
+    t = make_tracker("pf-xy", [1.0, 0.5], np.eye(2), seed=5, resample_threshold=0.0)
+    before = t.particles.copy()
+    assert t.update_range([0.0, 0.0], 1.2, 0.4) is True
+    d = np.hypot(before[:, 0], before[:, 1])
+    lik = np.exp(-0.5 * ((np.log(np.maximum(d, 0.1)) - math.log(1.2)) / (0.4 / 1.2)) ** 2)
+    exact = lik / lik.sum()
+    kept = lik / lik.max() > 2.0**-15.9  # the stored weights' resolution (see the Gaussian test above)
+    np.testing.assert_allclose(t.weights[kept], exact[kept], rtol=0.045)
+    np.testing.assert_allclose(t.mean, exact @ before, atol=0.01)
+
+
+def test_pf_strong_reading_of_a_far_beacon_does_not_collapse_the_cloud():
+    # The cloud is 10 m from a beacon heard as if 2.4 ± 1 m away (shadowing). In range space that
+    # is a 7σ reading that left ~1 particle of 1,000 alive; in dB (log-range) it is ~3σ and the
+    # whole cloud is nearly equally unlikely, so it keeps its spread.
+    t = make_tracker("pf-xy", [10.0, 0.0], np.eye(2), seed=6, resample_threshold=0.0)
+    spread = np.trace(t.covariance)
+    t.update_range([0.0, 0.0], 2.4, 1.0)
+    assert effective_sample_size(t.weights) > 300
+    t2 = make_tracker("pf-xy", [10.0, 0.0], np.eye(2), seed=6)
+    t2.update_range([0.0, 0.0], 2.4, 1.0)
+    assert np.trace(t2.covariance) > 0.5 * spread
+    assert np.hypot(*t2.mean) > 8.0  # pulled a little towards the beacon, not onto it
 
 
 # -- floor plans: walkable space ---------------------------------------------------------------

@@ -25,7 +25,16 @@ from filterpy.kalman import ExtendedKalmanFilter
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import enforce_side
-from server.estimation.tracking.measurements import MIN_RANGE_M, fix_H, fix_h, parse_on_wall, range_H, range_h, range_usable
+from server.estimation.tracking.measurements import (
+    MIN_RANGE_M,
+    fix_H,
+    fix_h,
+    log_range,
+    log_range_H,
+    log_range_h,
+    parse_on_wall,
+    range_usable,
+)
 from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.types import Fix, Step, step_displacement
 
@@ -56,11 +65,12 @@ class _EKFUpdates:
             # Jacobian undefined exactly on the beacon: nudge along the first axis.
             x[:2] = prior + np.array([MIN_RANGE_M, 0.0])
             self.ekf.x = x
+        z, sigma = log_range(range_m, range_std_m)
         self.ekf.update(
-            np.array([float(range_m)]),
-            range_H,
-            range_h,
-            R=np.array([[float(range_std_m) ** 2]]),
+            np.array([z]),
+            log_range_H,
+            log_range_h,
+            R=np.array([[sigma**2]]),
             args=(beacon,),
             hx_args=(beacon,),
         )

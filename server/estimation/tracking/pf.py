@@ -18,7 +18,9 @@ calibration columns resampled from the old particles by weight); without one, or
 draw lands inside, the step is applied without the test rather than losing the track.
 Many walls (a real plan) are tested through ``floorplan.WallIndex``.
 Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
-fix.covariance, and resamples when N_eff < resample_threshold·N.
+fix.covariance, and resamples when N_eff < resample_threshold·N. A beacon range weighs
+in log-range (``measurements.log_range``: the path-loss model's error is log-normal), so a
+strong reading of a far beacon does not leave a single particle alive.
 
 With ``min_particles`` below ``n_particles`` the particle count adapts (KLD-sampling,
 ``resampling.kld_count``): each resampling draws as many particles as the cloud's spread
@@ -47,7 +49,7 @@ from server.estimation import floorplan  # (a module: floorplan imports tracking
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
-from server.estimation.tracking.measurements import parse_on_wall, range_usable
+from server.estimation.tracking.measurements import MIN_LOG_RANGE_M, log_range, parse_on_wall, range_usable
 from server.estimation.tracking.packed import (
     fit_grid,
     grid_of,
@@ -143,7 +145,8 @@ class ParticleFilterXYTracker(Tracker):
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, self.mean)
         dist = np.hypot(self.particles[:, 0] - beacon[0], self.particles[:, 1] - beacon[1])
-        loglik = -0.5 * ((dist - range_m) / range_std_m) ** 2
+        z, sigma = log_range(range_m, range_std_m)
+        loglik = -0.5 * ((np.log(np.maximum(dist, MIN_LOG_RANGE_M)) - z) / sigma) ** 2
         if constraint is not None:
             loglik = np.where(on_wrong_side(self.particles[:, :2], constraint.wall, constraint.side), -np.inf, loglik)
         return self._reweight(loglik)

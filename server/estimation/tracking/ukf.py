@@ -23,7 +23,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unsce
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import enforce_side
-from server.estimation.tracking.measurements import fix_h, parse_on_wall, range_h, range_usable
+from server.estimation.tracking.measurements import fix_h, log_range, log_range_h, parse_on_wall, range_usable
 from server.estimation.types import Fix, Step
 
 _MIN_VAR = 1e-12
@@ -58,8 +58,8 @@ class _UKFUpdates:
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, np.asarray(self.ukf.x, float)[:2].copy())
         self._prepare_update()
-        self.ukf.update(np.array([float(range_m)]), R=np.array([[float(range_std_m) ** 2]]), hx=range_h,
-                        beacon=beacon)
+        z, sigma = log_range(range_m, range_std_m)
+        self.ukf.update(np.array([z]), R=np.array([[sigma**2]]), hx=log_range_h, beacon=beacon)
         x = np.asarray(self.ukf.x, float).copy()
         if constraint is not None:
             x[:2], _ = enforce_side(x[:2], constraint.wall, constraint.side, self.params["wall_margin_m"])
