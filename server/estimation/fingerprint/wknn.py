@@ -92,6 +92,14 @@ def _smallest(d: np.ndarray, k: int) -> np.ndarray:
     return np.argpartition(d, (k - 2, k - 1))[:k]
 
 
+def _unique_inverse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` for a short 1-D integer array (a query's few
+    reference points' groups), without its sort machinery."""
+    distinct = sorted(set(values.tolist()))
+    index = {v: i for i, v in enumerate(distinct)}
+    return np.array(distinct, dtype=values.dtype), np.array([index[v] for v in values.tolist()], dtype=np.intp)
+
+
 def _row_keys(X: np.ndarray, row_rp: np.ndarray, block: int = 8192) -> np.ndarray:
     """(n, 3) keys equal for equal (fingerprint, reference point) rows: two random projections
     of the row (float64, in blocks: memory stays O(n)) and the reference point. Different rows
@@ -117,7 +125,7 @@ class WKNNModel(FingerprintModel):
 
     name = "wknn"
     CANDIDATES = 96  # nearest fingerprints per query the hierarchy is resolved from
-    DERIVED = ("tx_ptr_", "tx_rows_", "tx_vals_")  # rebuilt from XT_ at load, not stored
+    DERIVED = ("tx_ptr_", "tx_rows_", "tx_vals_", "tx_bounds_")  # rebuilt from XT_ at load, not stored
 
     def __init__(self, k: int | None = None, distance: str = "sorensen", building_k: int = 10,
                  floor_k: int = 10, offset_search_db: float = 0.0, offset_step_db: float = 3.0,
@@ -211,11 +219,13 @@ class WKNNModel(FingerprintModel):
     def _index_transmitters(self) -> None:
         """``XT_``'s nonzeros by transmitter: the fingerprints hearing transmitter j are
         ``tx_rows_[tx_ptr_[j]: tx_ptr_[j + 1]]`` (ascending), their features ``tx_vals_`` alike
-        (float64: a query's sums need no conversion; ≈ 6 MB for UJIIndoorLoc)."""
+        (float32 as stored, rows int32 where they fit: ≈ 3 MB for UJIIndoorLoc, half the memory
+        a query streams through; ``tx_bounds_``: ``tx_ptr_`` as Python ints, sliced without boxing)."""
         tx, rows = np.nonzero(self.XT_)
         self.tx_ptr_ = np.concatenate([[0], np.cumsum(np.bincount(tx, minlength=self.XT_.shape[0]))])
-        self.tx_rows_ = rows
-        self.tx_vals_ = self.XT_[tx, rows].astype(np.float64)
+        self.tx_rows_ = rows.astype(np.int32) if self.XT_.shape[1] < 2**31 else rows
+        self.tx_vals_ = np.ascontiguousarray(self.XT_[tx, rows], dtype=np.float32)
+        self.tx_bounds_ = self.tx_ptr_.tolist()
 
     def reuse_choices(self, validated: FingerprintModel) -> None:
         """Take k and the coverage threshold ``validated`` chose by cross-validation and
@@ -322,13 +332,14 @@ class WKNNModel(FingerprintModel):
         """(n,) ``Σ_j min(q_j, f_j)`` over the query's heard columns ``cols`` (values ``qv``,
         float32) for every stored fingerprint, accumulated in float64 in column order (the
         same sums, bit for bit, as a dense sum over the gathered rows), from the transmitter
-        index only: one slice per heard transmitter."""
-        ptr, rows, vals = self.tx_ptr_, self.tx_rows_, self.tx_vals_
+        index only: one slice per heard transmitter. (The minimum of two float32 values is
+        one of them: taken in float32, then summed in float64, it is the same sum.)"""
+        ptr, rows, vals = self.tx_bounds_, self.tx_rows_, self.tx_vals_
         spans = [(ptr[j], ptr[j + 1]) for j in cols.tolist()]
         if not spans:
             return np.zeros(self.XT_.shape[1])
-        w = np.concatenate([np.minimum(vals[a:b], v) for (a, b), v in zip(spans, qv.astype(np.float64).tolist(),
-                                                                          strict=True)])
+        w = np.concatenate([vals[a:b] for a, b in spans])  # one gather, then one minimum over it
+        np.minimum(w, np.repeat(np.asarray(qv, dtype=np.float32), [b - a for a, b in spans]), out=w)
         return np.bincount(np.concatenate([rows[a:b] for a, b in spans]), weights=w, minlength=self.XT_.shape[1])
 
     def _distances(self, Q: np.ndarray, Hq: np.ndarray | None) -> np.ndarray:
@@ -363,8 +374,13 @@ class WKNNModel(FingerprintModel):
         qv = q[cols]
         inter = self._intersections(cols, qv)
         cand = np.flatnonzero(inter > 0)  # (a boolean's nonzeros: ≈ 4× faster than a float array's)
-        tot = float(qv.sum()) + self.x_sum_[cand]
-        return cand, (tot - 2.0 * inter[cand]) / np.maximum(tot, 1e-9)
+        q_sum = float(qv.sum())
+        tot = q_sum + self.x_sum_[cand]
+        d = inter[cand]  # (tot − 2·inter) / tot, in place: the same operations, no temporaries
+        d *= -2.0
+        d += tot
+        d /= tot if q_sum >= 1e-9 else np.maximum(tot, 1e-9)  # tot ≥ q_sum: the floor only guards an empty sum
+        return cand, d
 
     def _full_row(self, cand: np.ndarray, d: np.ndarray) -> np.ndarray:
         """``_query_distances``' answer as the (n,) row over every fingerprint."""
@@ -372,41 +388,79 @@ class WKNNModel(FingerprintModel):
         row[cand] = d
         return row
 
-    def _coverage_distance(self, cand: np.ndarray, d: np.ndarray) -> float:
-        """Distance to the nearest stored fingerprint (inf when none is stored)."""
-        low = float(d.min()) if len(d) else np.inf
+    def _coverage_distance(self, cand: np.ndarray, d: np.ndarray, near: np.ndarray | None = None) -> float:
+        """Distance to the nearest stored fingerprint (inf when none is stored); ``near``: ``d``'s
+        nearest as ``_sorted_nearest`` gives them, when known (the first is the minimum)."""
+        low = float(d[near[0]]) if near is not None else float(d.min()) if len(d) else np.inf
         return min(low, 1.0) if len(cand) < self.XT_.shape[1] else low
+
+    def _sorted_nearest(self, d: np.ndarray) -> np.ndarray | None:
+        """Indices of the ``_hierarchy_m()`` smallest of one query's distances ``d``, nearest first,
+        as ``_query_scores`` picks them (None when it takes the full row instead). The offset
+        estimate takes its nearest from them too: one partial sort per distance pass, not two."""
+        m = self._hierarchy_m()
+        if m < self.XT_.shape[1] and np.count_nonzero(np.isfinite(d)) >= m:
+            near = _smallest(d, m)
+            return near[np.argsort(d[near])]
+        return None
 
     def _shifted(self, R: np.ndarray, delta: float) -> np.ndarray:
         return self.encoder_.transform(R + delta)
 
-    def _estimate_offset(self, q: np.ndarray, cand: np.ndarray, d: np.ndarray) -> float:
+    def _estimate_offset(self, q: np.ndarray, cand: np.ndarray, d: np.ndarray, near: np.ndarray | None = None) -> float:
         """One query's RSS offset (dB): the median, over the transmitters heard both by the
         query and by its ``offset_neighbours`` nearest fingerprints, of (fingerprint −
         query); 0 when fewer than 3 such readings. (The nearest are among the candidates:
-        a non-candidate hears none of the query's transmitters and adds no reading.)"""
+        a non-candidate hears none of the query's transmitters and adds no reading.)
+        ``near``: ``d``'s nearest first (``_sorted_nearest``), when known: their first k are
+        the k nearest whenever the k-th is strictly nearer than the next (the median does
+        not depend on their order); on a tie there, the partial sort picks as it always did."""
         k = max(1, min(self.offset_neighbours, self.XT_.shape[1]))
-        near = cand[_smallest(d, k)]
+        if near is not None and k < len(near) and d[near[k - 1]] < d[near[k]]:
+            nearest = cand[near[:k]]
+        else:
+            nearest = cand[_smallest(d, k)]
         cols = np.flatnonzero(q > 0)  # the heard readings alone: the others decode to NaN
-        diff = self.encoder_.decode(self.XT_[np.ix_(cols, near)].T) - self.encoder_.decode(q[cols][None])
-        diff = diff[~np.isnan(diff)]
-        return float(np.clip(np.median(diff), -self.offset_max_db, self.offset_max_db)) if len(diff) >= 3 else 0.0
+        readings = np.empty((len(cols), len(nearest) + 1), dtype=np.float32)  # the neighbours', then the query's
+        readings[:, :-1] = self.XT_[cols[:, None], nearest]
+        readings[:, -1] = q[cols]
+        dbm = self.encoder_.decode(readings)  # one decode (element by element) for both
+        diff = dbm[:, :-1] - dbm[:, -1:]
+        diff = np.sort(diff[~np.isnan(diff)])
+        n = len(diff)
+        if n < 3:
+            return 0.0
+        # the median as np.median computes it (the middle value, or the mean of the two middle ones)
+        median = float(diff[n // 2]) if n % 2 else (float(diff[n // 2 - 1]) + float(diff[n // 2])) / 2.0
+        return max(-self.offset_max_db, min(median, self.offset_max_db))
 
     def _offset_query(self, q: np.ndarray, hq: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """``_query_distances`` with the per-query RSS offset (see the module docstring)."""
+        cand, d, _ = self._offset_query_nearest(q, hq)
+        return cand, d
+
+    def _offset_query_nearest(self, q: np.ndarray, hq: np.ndarray | None
+                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``_offset_query``, and the answer's nearest first (``_sorted_nearest``) when they were
+        picked on the way (else None)."""
         cand, d = self._query_distances(q, hq)
+        near = None
         if self.offset_estimate:
-            r0 = self.encoder_.decode(q[None])
+            r0 = None
             total, qs = 0.0, q
             for _ in range(self.offset_iterations):
-                delta = self._estimate_offset(qs, cand, d)
+                near = self._sorted_nearest(d)
+                delta = self._estimate_offset(qs, cand, d, near)
                 if abs(delta) < 0.5:
                     break
-                total = float(np.clip(total + delta, -self.offset_max_db, self.offset_max_db))
+                if r0 is None:
+                    r0 = self.encoder_.decode(q[None])
+                total = max(-self.offset_max_db, min(total + delta, self.offset_max_db))
                 qs = self.encoder_.transform(r0 + total)[0]
                 cand, d = self._query_distances(qs, hq)
+                near = None
         if self.offset_search_db <= 0:
-            return cand, d
+            return cand, d, near
         r = self.encoder_.decode(q[None])
         best = self._coverage_distance(cand, d)
         steps = np.arange(self.offset_step_db, self.offset_search_db + 1e-9, self.offset_step_db)
@@ -415,7 +469,7 @@ class WKNNModel(FingerprintModel):
             m = self._coverage_distance(c2, d2)
             if m < best:
                 cand, d, best = c2, d2, m
-        return cand, d
+        return cand, d, None
 
     # ---- hierarchy ---------------------------------------------------------------------
     def _restrict(self, D: np.ndarray) -> np.ndarray:
@@ -472,7 +526,7 @@ class WKNNModel(FingerprintModel):
             return super()._reduce(logs)
         rp_group, group_floor, group_building = self.rp_group_[cols], self.group_floor_, self.group_building_
         if live.any(axis=1).all():
-            groups, rp_group = np.unique(rp_group, return_inverse=True)
+            groups, rp_group = _unique_inverse(rp_group)
             group_floor, group_building = group_floor[groups], group_building[groups]
         pred = reduce_posterior(logs[:, cols], self.rp_xy_[cols], rp_group.reshape(-1), group_floor,
                                 group_building, self.cov_floor_m_, self.n_candidates)
@@ -522,17 +576,19 @@ class WKNNModel(FingerprintModel):
         np.add.at(scores, self.row_rp_[o], 1.0 / (d + 1e-6))
         return scores
 
-    def _query_scores(self, cand: np.ndarray, d: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    def _query_scores(self, cand: np.ndarray, d: np.ndarray, mask: np.ndarray | None,
+                      near: np.ndarray | None = None) -> np.ndarray:
         """``_hierarchy_scores`` of one query given as ``_query_distances`` (candidates and
         their distances; ``mask`` over reference points): from the candidates alone when
         at least ``_hierarchy_m()`` of them are allowed (the nearest fingerprints are
-        then all candidates), else on the full row."""
+        then all candidates), else on the full row. ``near``: ``_sorted_nearest(d)``, when
+        known (only without ``mask``)."""
         if mask is not None:
             d = np.where(mask[self.row_rp_[cand]], d, np.inf)
-        m = self._hierarchy_m()
-        if m < self.XT_.shape[1] and np.count_nonzero(np.isfinite(d)) >= m:
-            near = _smallest(d, m)
-            near = near[np.argsort(d[near])]
+            near = None
+        if near is None:
+            near = self._sorted_nearest(d)
+        if near is not None:
             row = self._resolve(cand[near], d[near])
             if row is not None:
                 return row
@@ -554,9 +610,9 @@ class WKNNModel(FingerprintModel):
         scores = np.zeros((len(Q), len(self.rp_xy_)))
         nearest = np.empty(len(Q))
         for i, q in enumerate(Q):
-            cand, d = self._offset_query(q, None if Hq is None else Hq[i])
-            nearest[i] = self._coverage_distance(cand, d)
-            scores[i] = self._query_scores(cand, d, None if mask is None else mask[i])
+            cand, d, near = self._offset_query_nearest(q, None if Hq is None else Hq[i])
+            nearest[i] = self._coverage_distance(cand, d, near)
+            scores[i] = self._query_scores(cand, d, None if mask is None else mask[i], near)
         sink = _COVERAGE_SINK.get()
         if sink is not None:
             sink.append(nearest)
