@@ -44,8 +44,6 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
     "wknn exponential sorensen, no offset estimate": ("wknn", {"offset_estimate": False}),
     "wknn positive sorensen": ("wknn", {"missing": "floor"}),
     "wknn positive euclidean": ("wknn", {"missing": "floor", "distance": "euclidean"}),
-    # chosen among combinations by benchmarks/fingerprint_ensemble.py on these same users
-    "ensemble: wknn positive + wknn powed + knn, floor vote, mean position": ("ensemble", {}),
 }
 
 

@@ -44,7 +44,6 @@ ALLOWED: frozenset[tuple[str, str]] = frozenset({
     ("server.estimation.fingerprint.svm", "SVMModel"),
     ("server.estimation.fingerprint.propagation", "PropagationModel"),
     ("server.estimation.fingerprint.radiomap", "RadioMapModel"),
-    ("server.estimation.fingerprint.ensemble", "EnsembleModel"),
     ("server.estimation.fingerprint.dataset", "ReferencePoints"),
     ("server.estimation.fingerprint.calibration", "CovarianceCalibration"),
     ("server.estimation.fingerprint.features", "RssEncoder"),

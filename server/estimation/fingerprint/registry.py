@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from .base import FingerprintModel
-from .ensemble import EnsembleModel
 from .kde import KDEModel
 from .knn import KNNModel
 from .nbc import NBCModel
@@ -22,7 +21,6 @@ ALGORITHMS: dict[str, type[FingerprintModel]] = {
     "propagation": PropagationModel,
     "wknn": WKNNModel,
     "rmap": RadioMapModel,
-    "ensemble": EnsembleModel,
 }
 
 
