@@ -31,8 +31,8 @@ wF+wP+knn with a floor vote and the mean position, 9.43 m / 59.1 % (Δ −0.45 m
 the HGB fit costs 24–57 s on a 4,000-row sample and 104 s on all 19,861 rows (wknn: 4.6 s),
 so it was left out before the report run. On REPORT (3,726 scans, once): wknn 11.96 m /
 75.5 %, the pick 12.21 m / 75.0 % (worse), the HGB variant 11.55 m / 75.3 %, the bare
-KNN baseline 16.35 m / 70.4 %. The pick is the selectable ``ensemble`` algorithm, not the
-default.
+KNN baseline 16.35 m / 70.4 %. The pick lost on data tuning did not see, so the service
+carries no ensemble (it was a selectable ``ensemble`` algorithm for one commit, 045798b).
 
     .venv/bin/python -m benchmarks.fingerprint_ensemble --stage choose [--sample N]
     .venv/bin/python -m benchmarks.fingerprint_ensemble --stage report --pick "<combination name>"
