@@ -6,9 +6,12 @@ Starts a real server process on a fresh SQLite file, uploads the training file, 
 the model and waits for it, then sends held-back scans (rows of the same file) to
 ``locate``: first one at a time (latency p50/p99), then from concurrent clients
 (fixes per second), alternating with as many ``GET /healthz`` from as many clients in
-``ROUNDS`` rounds (the same server's capacity for a request that does no work: the HTTP
-stack's ceiling, measured in the same run and interleaved, so the ratio locate / healthz
-does not depend on the machine's load, which other work on it changes).
+``ROUNDS`` rounds (the same server's capacity for a request that does next to no work — one
+trivial database query, in the thread pool —: the HTTP stack's ceiling, measured in the same run
+and interleaved, so the ratio locate / healthz
+does not depend on the machine's load, which other work on it changes). The server's own CPU
+per request (its processes' user + system time over those rounds) is printed beside: the
+closed-loop rates also carry the load generator's CPU, on the same cores, and what else runs.
 The in-process baseline is the same model's answer computed directly (no HTTP, no
 database): ``locate``, and for a model measuring coverage (wknn) ``locate_covered``,
 what the server computes per request; the ratio is what the service adds.
@@ -31,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.http_load import client, closed_loop  # noqa: E402
+from benchmarks.http_load import client, closed_loop, cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from localizer_tools.upload import upload  # noqa: E402
 from server.estimation.fingerprint import from_bytes  # noqa: E402
@@ -95,11 +98,15 @@ def main() -> None:
             locate_url = f"/api/v1/sites/{site['id']}/locate"
             asyncio.run(fire(base, locate_url, scans[:50], 1))  # warm every worker's model cache
             _, serial = asyncio.run(fire(base, locate_url, scans[: args.requests // 4], 1))
-            elapsed = health_s = 0.0
+            elapsed = health_s = locate_cpu = health_cpu = 0.0
             for r in range(ROUNDS):
                 part = scans[r::ROUNDS]
+                c0 = cpu_seconds(server.pid) or 0.0
                 elapsed += asyncio.run(fire(base, locate_url, part, args.concurrency))[0]
+                c1 = cpu_seconds(server.pid) or 0.0
                 health_s += asyncio.run(fire_healthz(base, len(part), args.concurrency))
+                c2 = cpu_seconds(server.pid) or 0.0
+                locate_cpu, health_cpu = locate_cpu + c1 - c0, health_cpu + c2 - c1
             blob = _artifact(url, model["id"])
         finally:
             admin.close()
@@ -121,6 +128,9 @@ def main() -> None:
     locate_rate, health_rate = len(scans) / elapsed, len(scans) / health_s
     print(f"HTTP, {args.concurrency} concurrent clients: {locate_rate:.0f} fixes/s over {len(scans)} requests; "
           f"healthz {health_rate:.0f} /s; locate / healthz capacity {locate_rate / health_rate:.2f} (target ≥ 0.4)")
+    if locate_cpu > 0 and health_cpu > 0:
+        print(f"server CPU per request: locate {locate_cpu / len(scans) * 1e3:.2f} ms, healthz "
+              f"{health_cpu / len(scans) * 1e3:.2f} ms (healthz / locate {health_cpu / locate_cpu:.2f})")
 
 
 def _artifact(database_url: str, model_id: int) -> bytes:

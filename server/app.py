@@ -14,6 +14,7 @@ from sqlalchemy.exc import DataError, OperationalError
 from server.api import dashboard, events, floorplans, health, locate, models, sessions, sites, surveys
 from server.api.errors import InternalErrors
 from server.api.limits import BATCH_ROUTE, LOCATE_ROUTE, BodySizeLimit
+from server.api.locate import LocateFastPath
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
@@ -81,6 +82,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.models = ModelService(db, on_queued=None if trainer is None else trainer.wake)
     app.state.health = HealthService(db)
     app.state.floorplans = FloorPlanService(db)
+    app.state.locate_fast_path = True  # see LocateFastPath
+    app.add_middleware(LocateFastPath)  # innermost of ours: inside the size limit and the 500 guard
     app.add_middleware(
         BodySizeLimit, max_bytes=settings.max_body_bytes, read_timeout_s=settings.body_read_timeout_s,
         routes=[(BATCH_ROUTE, int(settings.max_batch_body_kb * 1024)), (LOCATE_ROUTE, int(settings.max_locate_body_kb * 1024))],

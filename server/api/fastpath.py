@@ -18,7 +18,9 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
+from starlette.types import Message, Receive
 
+from server.db import Database
 from server.errors import UnsupportedMedia
 from server.inline import WouldBlock, on_event_loop
 
@@ -53,7 +55,12 @@ async def read_json(request: Request, model: type[M]) -> M:
 
 
 async def run_blocking(request: Request, work: Callable[..., T], *args: Any) -> T:
-    if request.app.state.db.embedded:
+    return await run_work(request.app.state.db, work, *args)
+
+
+async def run_work(db: Database, work: Callable[..., T], *args: Any) -> T:
+    """``work(*args)`` on the event loop (embedded database), else or on ``WouldBlock`` in the thread pool."""
+    if db.embedded:
         token = on_event_loop.set(True)
         try:
             return work(*args)
@@ -62,3 +69,20 @@ async def run_blocking(request: Request, work: Callable[..., T], *args: Any) -> 
         finally:
             on_event_loop.reset(token)
     return await run_in_threadpool(work, *args)
+
+
+def replaying(messages: list[Message], error: Exception | None, receive: Receive) -> Receive:
+    """A ``receive`` that gives ``messages`` again (the body a fast path read), then raises ``error``
+    if reading stopped on one, then goes on with ``receive``: the app behind sees the request as
+    it arrived."""
+    pending = list(messages)
+    failed = [error] if error is not None else []
+
+    async def replayed() -> Message:
+        if pending:
+            return pending.pop(0)
+        if failed:
+            raise failed.pop()
+        return await receive()
+
+    return replayed
