@@ -14,6 +14,7 @@ import math
 import sqlite3
 import threading
 from collections.abc import Mapping
+from urllib.parse import quote
 
 from sqlalchemy import make_url
 
@@ -103,8 +104,8 @@ class ServingMemo:
         with self._lock:
             try:
                 if self._conn is None:
-                    self._conn = sqlite3.connect(f"file:{self._path}?mode=rw", uri=True, check_same_thread=False,
-                                                 isolation_level=None, timeout=1.0)
+                    self._conn = sqlite3.connect(f"file:{quote(self._path)}?mode=rw", uri=True,  # never creates one
+                                                 check_same_thread=False, isolation_level=None, timeout=1.0)
                 version = int(self._conn.execute("PRAGMA data_version").fetchone()[0])
             except sqlite3.Error:
                 return None

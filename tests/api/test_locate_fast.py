@@ -105,3 +105,10 @@ def test_the_memo_is_on_for_the_servers_sqlite_file(database_url):
         assert memo.version() is not None
     else:
         assert memo.version() is None
+
+
+def test_the_memo_opens_a_path_that_needs_quoting_in_a_uri(tmp_path):
+    path = tmp_path / "a site #1 ?100%.db"
+    with sqlite3.connect(path) as conn:
+        conn.execute("CREATE TABLE t (v INTEGER)")
+    assert ServingMemo(str(path)).version() is not None
