@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import select
 import sqlite3
 import threading
 import time
@@ -12,7 +13,7 @@ from types import ModuleType
 
 import orjson
 from sqlalchemy import Connection, Engine, create_engine, event, make_url
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import InvalidatePoolError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 fcntl: ModuleType | None
@@ -47,7 +48,37 @@ def make_engine(url: str, busy_timeout_s: float = BUSY_TIMEOUT_S) -> Engine:
 
         event.listen(engine, "connect", _pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20, **json_codec)
+    engine = create_engine(url, pool_size=10, max_overflow=20, **json_codec)
+    event.listen(engine, "checkout", _ping_if_server_spoke(engine))
+    return engine
+
+
+def _ping_if_server_spoke(engine: Engine):
+    """A pool ``checkout`` hook that does what ``pool_pre_ping`` did for a networked database
+    without its round trip on every checkout (a ``SELECT 1``: ≈ 0.3 ms of a batch's CPU, two
+    per batch). A pooled connection sits idle between transactions and its server has nothing
+    to say to it; a server that shut down, restarted or terminated the backend sent its FATAL
+    message and closed the socket. So the socket is asked (a zero-timeout ``poll``): only when it
+    has something to read is the connection pinged as ``pool_pre_ping`` would, and when that
+    fails the whole pool is invalidated as ``pool_pre_ping`` does (the request then gets a
+    fresh connection, as before)."""
+
+    def checkout(dbapi_connection, record, _proxy) -> None:
+        try:
+            fd = dbapi_connection.fileno()
+        except Exception:  # noqa: BLE001  (no socket: closed or broken, let the ping decide)
+            fd = -1
+        if fd >= 0:
+            poller = select.poll()
+            poller.register(fd, select.POLLIN | select.POLLPRI)
+            if not poller.poll(0):
+                return  # quiet: as alive as a ping would have found it
+        try:
+            engine.dialect.do_ping(dbapi_connection)
+        except Exception as exc:  # noqa: BLE001  (any failure: the connection is not usable)
+            raise InvalidatePoolError(f"connection lost: {type(exc).__name__}") from exc
+
+    return checkout
 
 
 def _sqlite_pragmas(dbapi_connection, busy_ms: int) -> None:
@@ -138,6 +169,11 @@ class Database:
         ``BUSY_TIMEOUT_S`` in SQLite's handler (migrations, training, the command line)."""
         self.url = url
         self.engine = make_engine(url, BUSY_TIMEOUT_S if busy_timeout_s is None else busy_timeout_s)
+        #: reads outside a transaction on a networked database: no ``BEGIN`` and no ``ROLLBACK``
+        #: round trip around them (PostgreSQL reads at READ COMMITTED take a snapshot per statement
+        #: either way); SQLite's driver begins no transaction for reads already
+        self._read_engine = self.engine if url.startswith("sqlite") else \
+            self.engine.execution_options(isolation_level="AUTOCOMMIT")
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         #: an embedded database: every call is a local file access, never a network wait
         self.embedded = url.startswith("sqlite")
@@ -165,8 +201,9 @@ class Database:
                 session.commit()
 
     def read(self) -> Connection:
-        """A Core connection for reads (``with db.read() as conn``); nothing it does is committed."""
-        return self.engine.connect()
+        """A Core connection for reads (``with db.read() as conn``); nothing it does is committed
+        (on a networked database each statement commits on its own: use it for reads only)."""
+        return self._read_engine.connect()
 
     @contextmanager
     def write(self) -> Iterator[Connection]:

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
+import weakref
+from functools import partial
 from typing import Annotated, Any, Literal
 
+import anyio.to_thread
 import orjson
+from anyio import CapacityLimiter
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 
@@ -58,8 +63,30 @@ async def post_batch(session_id: str, request: Request, sessions: Sessions, prin
         for p in batch.steps
     ]
     scans = [Scan(c.t, dict(c.rss), c.heading_deg) for c in batch.scans]
-    answer = await run_blocking(request, sessions.feed, principal, session_id, batch.seq, steps, scans)
+    if request.app.state.db.embedded:
+        answer = await run_blocking(request, sessions.feed, principal, session_id, batch.seq, steps, scans)
+    else:
+        answer = await anyio.to_thread.run_sync(partial(sessions.feed, principal, session_id, batch.seq, steps, scans),
+                                                limiter=_feed_threads())
     return JSONResponse(batch_result(answer).model_dump(mode="json"))
+
+
+#: batches a process computes at once on a networked database (each in a thread of its own while it
+#: waits on the database); the rest wait their turn on the event loop. Dozens of threads taking turns
+#: on the GIL cost more CPU per batch than the batches themselves need (≈ 0.8 ms a batch more at 32
+#: at once than at 4 on PostgreSQL), and eight keep a process's share of the cores busy while the
+#: database answers, within the connection pool's ten
+FEED_THREADS = 8
+_feed_limiters: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, CapacityLimiter] = weakref.WeakKeyDictionary()
+
+
+def _feed_threads() -> CapacityLimiter:
+    """The event loop's own limiter (an ``anyio`` limiter belongs to one loop)."""
+    loop = asyncio.get_running_loop()
+    limiter = _feed_limiters.get(loop)
+    if limiter is None:
+        limiter = _feed_limiters[loop] = CapacityLimiter(FEED_THREADS)
+    return limiter
 
 
 @router.get("", response_model=list[SessionOut])

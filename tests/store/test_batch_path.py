@@ -1,0 +1,95 @@
+"""The per-batch database path's connection handling: reads without a transaction's round trips,
+and connections the server dropped found before use (what ``pool_pre_ping`` did, without its
+``SELECT 1`` on every checkout). The PostgreSQL tests skip on SQLite."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from sqlalchemy import text
+
+from server.domain import BatchAnswer
+from server.estimation.types import Estimate
+from server.store import sessions
+
+START = Estimate(None, 1.0, 2.0, 0, ((1.0, 0.0), (0.0, 1.0)), "init")
+
+
+@pytest.fixture
+def session_id(db, site_id) -> str:
+    with db.transaction() as s:
+        return sessions.add_session(s, "s-1", site_id, "owner-hash", "ekf", None, {"v": 0}, [START]).id
+
+
+@pytest.fixture
+def postgres(db):
+    if db.embedded:
+        pytest.skip("PostgreSQL only (LOCALIZER_TEST_DATABASE_URL)")
+    return db
+
+
+def _backend_pids(db) -> set[int]:
+    """The server process ids of the connections resting in ``db``'s pool."""
+    pids: set[int] = set()
+    held = [db.engine.raw_connection() for _ in range(db.engine.pool.checkedin())]
+    for conn in held:
+        pids.add(conn.driver_connection.info.backend_pid)  # type: ignore[union-attr]
+    for conn in held:
+        conn.close()
+    return pids
+
+
+def test_a_read_leaves_no_transaction_open_on_postgres(postgres, session_id):
+    with postgres.read() as conn:
+        assert sessions.feed_state(conn, session_id) is not None
+        info = conn.connection.driver_connection.info  # type: ignore[union-attr]
+        assert info.transaction_status.name == "IDLE"  # no BEGIN was sent, none to roll back
+    with postgres.write() as conn:  # writes still run in one transaction
+        conn.execute(text("SELECT 1"))
+        assert conn.connection.driver_connection.info.transaction_status.name == "INTRANS"  # type: ignore[union-attr]
+
+
+def test_a_batch_is_read_and_written_on_connections_the_server_dropped(postgres, session_id):
+    """A database restart (or an administrator) ends the pooled connections' backends; the next
+    read and write get working connections, not a failed request."""
+    for _ in range(2):  # two connections in the pool
+        with postgres.read() as a, postgres.read() as b:
+            a.execute(text("SELECT 1"))
+            b.execute(text("SELECT 1"))
+    pids = _backend_pids(postgres)
+    assert pids
+    other = type(postgres)(postgres.url)
+    try:
+        with other.write() as conn:
+            for pid in pids:
+                conn.execute(text("SELECT pg_terminate_backend(:p)"), {"p": pid})
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:  # the backends are gone (termination is asynchronous)
+            with other.read() as conn:
+                alive = conn.execute(text("SELECT count(*) FROM pg_stat_activity WHERE pid = ANY(:p)"),
+                                     {"p": list(pids)}).scalar()
+            if not alive:
+                break
+            time.sleep(0.01)
+    finally:
+        other.dispose()
+    with postgres.read() as conn:
+        state = sessions.feed_state(conn, session_id)
+    assert state is not None and state.last_seq == -1
+    answer = BatchAnswer(0, START, 0, 0, (), ())
+    with postgres.write() as conn:
+        assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
+                                   first_idx=1, estimates=[])
+    with postgres.read() as conn:
+        assert sessions.batch_answer(conn, session_id, 0) == answer
+    assert not pids & _backend_pids(postgres)
+
+
+def test_a_read_on_sqlite_is_as_before(db, session_id):
+    """SQLite's reads were never in a transaction of their own (its driver begins none for a SELECT)."""
+    if not db.embedded:
+        pytest.skip("SQLite only")
+    with db.read() as conn:
+        assert sessions.feed_state(conn, session_id) is not None
+        assert not conn.connection.driver_connection.in_transaction  # type: ignore[union-attr]
