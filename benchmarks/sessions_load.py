@@ -5,10 +5,11 @@
     python benchmarks/sessions_load.py --phones 300 --seconds 20 --workers 2 \
         --database-url postgresql+psycopg://postgres@127.0.0.1/loadbench
 
-Starts ``python -m server serve`` on a fresh SQLite file (or ``--database-url``), creates
-a synthetic site (survey + a trained knn model), opens one session per phone with a
-start position, then every phone posts one batch per second (2 steps + 1 RSS scan) for
-``--seconds``, phones staggered over the first second. A post that fails at the
+Starts ``python -m server serve`` on a fresh SQLite file (or ``--database-url``, which may
+be used again: each run's site has a name of its own), creates a synthetic site (survey +
+a trained knn model), opens one session per phone with a start position, then every phone
+posts one batch per second (2 steps + 1 RSS scan) for ``--seconds``, phones staggered over
+the first second. A post that fails at the
 transport level is retried with the same ``seq`` (the server answers a replay from its
 store). Prints the batch latency percentiles and the achieved rate, then checks the
 stored data: every session has exactly one stored answer per posted seq and exactly
@@ -82,7 +83,7 @@ def database_cpu_seconds() -> float | None:
 
 def prepare_site(base: str, synth) -> int:
     with httpx.Client(base_url=base, headers={"Authorization": f"Bearer {ADMIN}"}, timeout=120) as c:
-        site = c.post(f"{API}/sites", json={"name": "bench", "floors": [{"level": 0}, {"level": 1}],
+        site = c.post(f"{API}/sites", json={"name": f"bench {time.time_ns()}", "floors": [{"level": 0}, {"level": 1}],
                                             "transmitters": synth.transmitters}).json()
         rows = synth.survey(scans_per_rp=6, seed=1).to_rows()
         for row in rows:
