@@ -191,7 +191,8 @@ class Positioning:
             fix, nearest = model.locate_covered(rss, heading_deg)
         except UnknownTransmittersError:
             raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
-        return Located(fix, serving.model_id, serving.algorithm, coverage=Coverage(ratio=nearest / threshold))
+        # a distance is ≥ 0; a scan equal to a stored fingerprint can come out at −1e-8 from rounding
+        return Located(fix, serving.model_id, serving.algorithm, coverage=Coverage(ratio=max(nearest, 0.0) / threshold))
 
 
 def coverage_threshold(model: FingerprintModel) -> float | None:
