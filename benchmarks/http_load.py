@@ -72,6 +72,31 @@ def cpu_seconds(pid: int) -> float | None:
 
 
 def database_cpu_seconds() -> float | None:
-    """CPU time used so far by every PostgreSQL process on this machine (its backends are the
-    postmaster's children, not the server's): what a batch costs the database."""
-    return _cpu_of(lambda _p, _parent, name: name == "postgres")
+    """CPU time (s) used so far by every PostgreSQL process on this machine, those that have
+    exited included: a backend's time moves into its postmaster's ``cutime``/``cstime`` when it
+    ends. Counting only the live processes (as this did before) lost the time of
+    every connection closed during the run: with a pool that opened and closed connections under
+    load, 0.1-0.2 ms of a batch's ≈ 0.8 ms."""
+    try:
+        tick = os.sysconf("SC_CLK_TCK")
+        procs: dict[int, tuple[str, int, list[str]]] = {}
+        for entry in os.listdir("/proc"):
+            if not entry.isdigit():
+                continue
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    head, rest = f.read().rsplit(")", 1)
+            except OSError:
+                continue
+            fields = rest.split()
+            procs[int(entry)] = (head.split("(", 1)[-1], int(fields[1]), fields)
+        total = 0.0
+        for name, parent, fields in procs.values():
+            if name != "postgres":
+                continue
+            total += int(fields[11]) + int(fields[12])  # utime, stime
+            if procs.get(parent, ("",))[0] != "postgres":  # the postmaster: its reaped children's too
+                total += int(fields[13]) + int(fields[14])  # cutime, cstime
+        return total / tick
+    except (OSError, ValueError):
+        return None

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
-import os
 import sys
 import tempfile
 import time
@@ -42,43 +41,12 @@ from sqlalchemy import create_engine, text
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.http_load import client, closed_loop, cpu_seconds  # noqa: E402
+from benchmarks.http_load import client, closed_loop, cpu_seconds, database_cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from tests.helpers.synthetic import make_site  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
 API = "/api/v1"
-
-
-def database_cpu_seconds() -> float | None:
-    """CPU time (s) used so far by every PostgreSQL process on this machine, those that have
-    exited included: a backend's time moves into its postmaster's ``cutime``/``cstime`` when it
-    ends. Counting only the live processes (``http_load.database_cpu_seconds``) lost the time of
-    every connection closed during the run: with a pool that opened and closed connections under
-    load, 0.1-0.2 ms of a batch's ≈ 0.8 ms."""
-    try:
-        tick = os.sysconf("SC_CLK_TCK")
-        procs: dict[int, tuple[str, int, list[str]]] = {}
-        for entry in os.listdir("/proc"):
-            if not entry.isdigit():
-                continue
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    head, rest = f.read().rsplit(")", 1)
-            except OSError:
-                continue
-            fields = rest.split()
-            procs[int(entry)] = (head.split("(", 1)[-1], int(fields[1]), fields)
-        total = 0.0
-        for name, parent, fields in procs.values():
-            if name != "postgres":
-                continue
-            total += int(fields[11]) + int(fields[12])  # utime, stime
-            if procs.get(parent, ("",))[0] != "postgres":  # the postmaster: its reaped children's too
-                total += int(fields[13]) + int(fields[14])  # cutime, cstime
-        return total / tick
-    except (OSError, ValueError):
-        return None
 
 
 def prepare_site(base: str, synth) -> int:
