@@ -68,7 +68,8 @@ from server.estimation.types import Fix, Step
 
 #: KLD-sampling (``min_particles`` < ``n_particles``) is off by default. Chosen on the tune
 #: scenarios of benchmarks/scenario_family.py (ε = 0.15, bins 1 m, at least 100: 6–8 kB per
-#: stored state instead of 28 kB, error within 5 % of a fixed 1,000 particles'), it then cost
+#: stored state instead of 28 kB with the float32 particles of then, error within 5 % of a
+#: fixed 1,000 particles'), it then cost
 #: 27 % more error than PF-1000 on the held-out scenarios with wknn fixes (2.74 against 2.16 m;
 #: +3–4 % with knn and unbiased fixes): small clouds collapse onto a wrong fix. The default
 #: went back to a fixed 1,000 after that held-out run.
