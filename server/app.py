@@ -15,6 +15,7 @@ from server.api import dashboard, events, floorplans, health, locate, models, se
 from server.api.errors import InternalErrors
 from server.api.limits import BATCH_ROUTE, LOCATE_ROUTE, BodySizeLimit
 from server.api.locate import LocateFastPath
+from server.api.sessions import BatchFastPath
 from server.auth import Authenticator
 from server.config import Settings, get_settings
 from server.db import Database
@@ -84,6 +85,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.floorplans = FloorPlanService(db)
     app.state.locate_fast_path = True  # see LocateFastPath
     app.add_middleware(LocateFastPath)  # innermost of ours: inside the size limit and the 500 guard
+    app.state.batch_fast_path = True  # see BatchFastPath
+    app.add_middleware(BatchFastPath)  # beside LocateFastPath (each passes on what is not its route)
     app.add_middleware(
         BodySizeLimit, max_bytes=settings.max_body_bytes, read_timeout_s=settings.body_read_timeout_s,
         routes=[(BATCH_ROUTE, int(settings.max_batch_body_kb * 1024)), (LOCATE_ROUTE, int(settings.max_locate_body_kb * 1024))],

@@ -86,3 +86,32 @@ def replaying(messages: list[Message], error: Exception | None, receive: Receive
         return await receive()
 
     return replayed
+
+
+class BodyUnread(Exception):
+    """Reading a request's body stopped: ``error`` is what ``receive`` raised (None: the client went away)."""
+
+    def __init__(self, messages: list[Message], error: Exception | None):
+        super().__init__("body unread")
+        self.messages, self.error = messages, error
+
+
+async def read_body(receive: Receive) -> tuple[list[Message], bytes]:
+    """The messages a request's body came in (to replay) and the body, or ``BodyUnread`` carrying the
+    messages read so far and what stopped the reading (a body too large, too slow, cut off: the
+    route reports it when they are replayed to it)."""
+    messages: list[Message] = []
+    chunks: list[bytes] = []
+    try:
+        while True:
+            message = await receive()
+            messages.append(message)
+            if message["type"] != "http.request":  # the client went away: as the route sees it
+                raise BodyUnread(messages, None)
+            chunks.append(message.get("body", b""))
+            if not message.get("more_body", False):
+                return messages, b"".join(chunks)
+    except BodyUnread:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise BodyUnread(messages, exc) from None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import weakref
 from functools import partial
 from typing import Annotated, Any, Literal
@@ -12,9 +13,13 @@ import orjson
 from anyio import CapacityLimiter
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.deps import Device, Sessions
-from server.api.fastpath import json_body_doc, read_json, run_blocking
+from server.api.fastpath import BodyUnread, json_body_doc, read_body, read_json, replaying, run_work
+from server.api.locate import _declared_json, _principal
+from server.auth import Principal
+from server.db import Database
 from server.domain import BatchAnswer, SessionInfo
 from server.errors import InvalidField
 from server.estimation.types import Estimate, Scan, Step
@@ -27,7 +32,7 @@ from server.schemas import (
     SkippedScan,
     TrackEstimateOut,
 )
-from server.services.sessions import InitialPosition
+from server.services.sessions import InitialPosition, SessionService
 
 router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 
@@ -55,19 +60,30 @@ def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> Sess
 )
 async def post_batch(session_id: str, request: Request, sessions: Sessions, principal: Device) -> Response:
     """Apply a batch once; a batch whose seq was already applied gets the stored answer again.
-    The answer is sent as stored (plain JSON), which is also what a replay gets."""
+    The answer is sent as stored (plain JSON), which is also what a replay gets. A batch that goes
+    well is usually answered by ``BatchFastPath`` in front of the router, with this same work and bytes."""
     batch = await read_json(request, BatchIn)
+    return batch_response(await feed_batch(request.app.state.db, sessions, principal, session_id, batch))
+
+
+async def feed_batch(db: Database, sessions: SessionService, principal: Principal, session_id: str,
+                     batch: BatchIn) -> BatchAnswer:
+    """``sessions.feed`` of a parsed batch: on the event loop for an embedded database (SQLite), else in
+    the thread pool, at most ``FEED_THREADS`` at once (the route and ``BatchFastPath`` both run this)."""
     steps = [
         Step(p.t, p.length_m, p.heading_deg, **{k: v for k, v in (("length_std_m", p.length_std_m),
                                                                   ("heading_std_deg", p.heading_std_deg)) if v is not None})
         for p in batch.steps
     ]
     scans = [Scan(c.t, dict(c.rss), c.heading_deg) for c in batch.scans]
-    if request.app.state.db.embedded:
-        answer = await run_blocking(request, sessions.feed, principal, session_id, batch.seq, steps, scans)
-    else:
-        answer = await anyio.to_thread.run_sync(partial(sessions.feed, principal, session_id, batch.seq, steps, scans),
-                                                limiter=_feed_threads())
+    if db.embedded:
+        return await run_work(db, sessions.feed, principal, session_id, batch.seq, steps, scans)
+    return await anyio.to_thread.run_sync(partial(sessions.feed, principal, session_id, batch.seq, steps, scans),
+                                          limiter=_feed_threads())
+
+
+def batch_response(answer: BatchAnswer) -> Response:
+    """A batch's answer as the route sends it."""
     return JSONResponse(batch_result(answer).model_dump(mode="json"))
 
 
@@ -205,3 +221,54 @@ def batch_result(a: BatchAnswer) -> BatchResult:
         skipped_scans=[SkippedScan(index=n.index, reason=n.reason) for n in a.skipped_scans],
         rejected_fixes=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_fixes],
     )
+
+
+#: the batch route's path, as the router matches it (a session id is any segment)
+_BATCH_PATH = re.compile(r"/api/v1/sessions/([^/]+)/batches")
+
+
+class BatchFastPath:
+    """Pure ASGI middleware beside ``server.api.locate.LocateFastPath`` (inside the body-size limit):
+    answers ``POST /api/v1/sessions/{session_id}/batches`` itself when all goes well (a bearer key
+    allowing device work, a JSON body of declared length that ``BatchIn`` accepts, a batch the
+    session takes or has already taken), with the route's own work (``feed_batch``) and bytes
+    (``batch_response``) but without FastAPI's per-request machinery.
+
+    Nothing is stored before the key and the body have passed exactly the route's checks; everything
+    else — another route, no key or a refused one, a body not declared JSON or of no declared length,
+    an invalid body, any error of the work, dependency overrides in place — goes to the app as it
+    arrived (the body replayed), where the route answers exactly as it always did (a failed batch
+    wrote nothing, and one stored meanwhile is answered from storage: batches are idempotent by seq).
+    ``app.state.batch_fast_path = False`` sends every request to the route."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        match = _BATCH_PATH.fullmatch(scope["path"]) if scope["type"] == "http" and scope["method"] == "POST" \
+            else None
+        application = scope.get("app")
+        if match is None or application is None or not getattr(application.state, "batch_fast_path", False) \
+                or application.dependency_overrides or not _declared_json(scope):
+            await self.app(scope, receive, send)
+            return
+        try:
+            messages, body = await read_body(receive)
+        except BodyUnread as unread:
+            await self.app(scope, replaying(unread.messages, unread.error, receive), send)
+            return
+        try:
+            state = application.state
+            principal = await _principal(state.auth, scope)
+            if principal is None or not principal.allows("device"):
+                raise _RouteAnswers
+            batch = BatchIn.model_validate_json(body)
+            response = batch_response(await feed_batch(state.db, state.sessions, principal, match.group(1), batch))
+        except Exception:  # noqa: BLE001  (refused, invalid or failed: the route answers, its own way)
+            await self.app(scope, replaying(messages, None, receive), send)
+            return
+        await response(scope, receive, send)
+
+
+class _RouteAnswers(Exception):
+    """This request is the route's to answer."""
