@@ -18,8 +18,9 @@ from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.types import Message, Receive
+from starlette.types import Message, Receive, Scope
 
+from server.auth import Authenticator, Principal
 from server.db import Database
 from server.errors import UnsupportedMedia
 from server.inline import WouldBlock, on_event_loop
@@ -115,3 +116,34 @@ async def read_body(receive: Receive) -> tuple[list[Message], bytes]:
         raise
     except Exception as exc:  # noqa: BLE001
         raise BodyUnread(messages, exc) from None
+
+
+def _header(scope: Scope, name: bytes) -> bytes | None:
+    """The first value of header ``name`` (lower case), as Starlette's ``headers.get`` gives it."""
+    return next((value for key, value in scope["headers"] if key == name), None)
+
+
+def declared_json(scope: Scope) -> bool:
+    """Declared JSON (or not declared), as ``read_json`` takes it, with a length small enough to parse inline."""
+    media = (_header(scope, b"content-type") or b"application/json").decode("latin-1").split(";")[0].strip().lower()
+    length = _header(scope, b"content-length")
+    return (media == "application/json" or media.endswith("+json")) and length is not None and length.isdigit() \
+        and int(length) <= PARSE_INLINE_MAX_BYTES
+
+
+async def key_principal(auth: Authenticator, scope: Scope) -> Principal | None:
+    """The key's principal as ``server.api.deps`` finds it, or None where it would refuse the request
+    (no bearer key, an address waiting after failures, an unknown key): the route then refuses it
+    itself, counting the failure once."""
+    authorization = _header(scope, b"authorization")
+    scheme, _, credentials = (authorization or b"").decode("latin-1").partition(" ")
+    credentials = credentials.strip()
+    if not scheme or not credentials or scheme.lower() != "bearer":
+        return None
+    principal = auth.bootstrap(credentials)
+    if principal is None:
+        client = scope.get("client")
+        if auth.failures.retry_after(client[0] if client else "") is not None:
+            return None
+        principal = await run_in_threadpool(auth.stored, credentials)
+    return principal

@@ -10,12 +10,20 @@ from __future__ import annotations
 import re
 
 from fastapi import APIRouter, Request, Response
-from starlette.concurrency import run_in_threadpool
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.deps import Device, PathId, Positioning
-from server.api.fastpath import PARSE_INLINE_MAX_BYTES, json_body_doc, read_json, replaying, run_blocking, run_work
-from server.auth import Authenticator, Principal
+from server.api.fastpath import (
+    BodyUnread,
+    declared_json,
+    json_body_doc,
+    key_principal,
+    read_body,
+    read_json,
+    replaying,
+    run_blocking,
+    run_work,
+)
 from server.domain import Located
 from server.schemas import CandidateOut, LocateIn, LocateOut
 
@@ -77,30 +85,21 @@ class LocateFastPath:
             else None
         application = scope.get("app")
         if match is None or application is None or not getattr(application.state, "locate_fast_path", False) \
-                or application.dependency_overrides or not _declared_json(scope):
+                or application.dependency_overrides or not declared_json(scope):
             await self.app(scope, receive, send)
             return
-        messages: list[Message] = []
         try:
-            chunks = []
-            while True:
-                message = await receive()
-                messages.append(message)
-                if message["type"] != "http.request":  # the client went away: as the route sees it
-                    raise _Unanswered
-                chunks.append(message.get("body", b""))
-                if not message.get("more_body", False):
-                    break
-        except Exception as exc:  # noqa: BLE001  (a body too large, too slow, cut off: the route reports it)
-            await self.app(scope, replaying(messages, None if isinstance(exc, _Unanswered) else exc, receive), send)
+            messages, body_bytes = await read_body(receive)
+        except BodyUnread as unread:  # a body too large, too slow, cut off: the route reports it
+            await self.app(scope, replaying(unread.messages, unread.error, receive), send)
             return
         try:
             state = application.state
-            principal = await _principal(state.auth, scope)
+            principal = await key_principal(state.auth, scope)
             site_id = int(match.group(1))
             if principal is None or not principal.allows("device") or not _ID_MIN <= site_id <= _ID_MAX:
                 raise _Unanswered
-            body = LocateIn.model_validate_json(b"".join(chunks))
+            body = LocateIn.model_validate_json(body_bytes)
             located = await run_work(state.db, state.positioning.locate_answer, site_id, body.rss, body.heading_deg,
                                      body.model_id)
             answer = answer_bytes(located)
@@ -112,34 +111,3 @@ class LocateFastPath:
 
 class _Unanswered(Exception):
     """This request is the route's to answer."""
-
-
-def _header(scope: Scope, name: bytes) -> bytes | None:
-    """The first value of header ``name`` (lower case), as Starlette's ``headers.get`` gives it."""
-    return next((value for key, value in scope["headers"] if key == name), None)
-
-
-def _declared_json(scope: Scope) -> bool:
-    """Declared JSON (or not declared), as ``read_json`` takes it, with a length small enough to parse inline."""
-    media = (_header(scope, b"content-type") or b"application/json").decode("latin-1").split(";")[0].strip().lower()
-    length = _header(scope, b"content-length")
-    return (media == "application/json" or media.endswith("+json")) and length is not None and length.isdigit() \
-        and int(length) <= PARSE_INLINE_MAX_BYTES
-
-
-async def _principal(auth: Authenticator, scope: Scope) -> Principal | None:
-    """The key's principal as ``server.api.deps`` finds it, or None where it would refuse the request
-    (no bearer key, an address waiting after failures, an unknown key): the route then refuses it
-    itself, counting the failure once."""
-    authorization = _header(scope, b"authorization")
-    scheme, _, credentials = (authorization or b"").decode("latin-1").partition(" ")
-    credentials = credentials.strip()
-    if not scheme or not credentials or scheme.lower() != "bearer":
-        return None
-    principal = auth.bootstrap(credentials)
-    if principal is None:
-        client = scope.get("client")
-        if auth.failures.retry_after(client[0] if client else "") is not None:
-            return None
-        principal = await run_in_threadpool(auth.stored, credentials)
-    return principal

@@ -16,8 +16,16 @@ from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.deps import Device, Sessions
-from server.api.fastpath import BodyUnread, json_body_doc, read_body, read_json, replaying, run_work
-from server.api.locate import _declared_json, _principal
+from server.api.fastpath import (
+    BodyUnread,
+    declared_json,
+    json_body_doc,
+    key_principal,
+    read_body,
+    read_json,
+    replaying,
+    run_work,
+)
 from server.auth import Principal
 from server.db import Database
 from server.domain import BatchAnswer, SessionInfo
@@ -249,7 +257,7 @@ class BatchFastPath:
             else None
         application = scope.get("app")
         if match is None or application is None or not getattr(application.state, "batch_fast_path", False) \
-                or application.dependency_overrides or not _declared_json(scope):
+                or application.dependency_overrides or not declared_json(scope):
             await self.app(scope, receive, send)
             return
         try:
@@ -259,7 +267,7 @@ class BatchFastPath:
             return
         try:
             state = application.state
-            principal = await _principal(state.auth, scope)
+            principal = await key_principal(state.auth, scope)
             if principal is None or not principal.allows("device"):
                 raise _RouteAnswers
             batch = BatchIn.model_validate_json(body)
