@@ -11,14 +11,16 @@ or when the work meets a slow path (``server.inline.WouldBlock``: a model to loa
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 from fastapi import Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.concurrency import run_in_threadpool
-from starlette.types import Message, Receive, Scope
+from starlette.responses import Response
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.auth import Authenticator, Principal
 from server.db import Database
@@ -147,3 +149,54 @@ async def key_principal(auth: Authenticator, scope: Scope) -> Principal | None:
             return None
         principal = await run_in_threadpool(auth.stored, credentials)
     return principal
+
+
+class RouteAnswers(Exception):
+    """This request is the route's to answer (a fast path's refusal: the route gives its own)."""
+
+
+class FastPath:
+    """Base of the pure ASGI fast paths in front of the router (``LocateFastPath``,
+    ``BatchFastPath``): a ``POST`` to ``path`` with a bearer key allowing device work and a JSON
+    body of declared length is answered by ``answer`` (the route's own work and bytes) without
+    FastAPI's per-request machinery (trying the routes in turn, solving dependencies, its
+    exception and exit-stack wrappers). Everything else — another route, no key or a refused one,
+    a body not declared JSON or of no declared length, a body cut off, ``answer`` raising for any
+    reason, dependency overrides in place, ``app.state.<flag>`` false — goes to the app as it
+    arrived (the body replayed), where the route answers exactly as it always did."""
+
+    #: the route's path (``fullmatch``; its groups go to ``answer``)
+    path: ClassVar[re.Pattern[str]]
+    #: the ``app.state`` attribute that turns this fast path on
+    flag: ClassVar[str]
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def answer(self, state: Any, match: re.Match[str], principal: Principal, body: bytes) -> Response:
+        """The route's response for this request; raise (``RouteAnswers`` or anything) to let the route answer."""
+        raise NotImplementedError
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        match = self.path.fullmatch(scope["path"]) if scope["type"] == "http" and scope["method"] == "POST" \
+            else None
+        application = scope.get("app")
+        if match is None or application is None or not getattr(application.state, self.flag, False) \
+                or application.dependency_overrides or not declared_json(scope):
+            await self.app(scope, receive, send)
+            return
+        try:
+            messages, body = await read_body(receive)
+        except BodyUnread as unread:  # a body too large, too slow, cut off: the route reports it
+            await self.app(scope, replaying(unread.messages, unread.error, receive), send)
+            return
+        try:
+            state = application.state
+            principal = await key_principal(state.auth, scope)
+            if principal is None or not principal.allows("device"):
+                raise RouteAnswers
+            response = await self.answer(state, match, principal, body)
+        except Exception:  # noqa: BLE001  (refused, invalid or failed: the route answers, its own way)
+            await self.app(scope, replaying(messages, None, receive), send)
+            return
+        await response(scope, receive, send)

@@ -13,19 +13,9 @@ import orjson
 from anyio import CapacityLimiter
 from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.responses import JSONResponse
-from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.deps import Device, Sessions
-from server.api.fastpath import (
-    BodyUnread,
-    declared_json,
-    json_body_doc,
-    key_principal,
-    read_body,
-    read_json,
-    replaying,
-    run_work,
-)
+from server.api.fastpath import FastPath, json_body_doc, read_json, run_work
 from server.auth import Principal
 from server.db import Database
 from server.domain import BatchAnswer, SessionInfo
@@ -235,48 +225,16 @@ def batch_result(a: BatchAnswer) -> BatchResult:
 _BATCH_PATH = re.compile(r"/api/v1/sessions/([^/]+)/batches")
 
 
-class BatchFastPath:
-    """Pure ASGI middleware beside ``server.api.locate.LocateFastPath`` (inside the body-size limit):
-    answers ``POST /api/v1/sessions/{session_id}/batches`` itself when all goes well (a bearer key
-    allowing device work, a JSON body of declared length that ``BatchIn`` accepts, a batch the
-    session takes or has already taken), with the route's own work (``feed_batch``) and bytes
-    (``batch_response``) but without FastAPI's per-request machinery.
+class BatchFastPath(FastPath):
+    """``POST /api/v1/sessions/{session_id}/batches`` answered without FastAPI's machinery when all
+    goes well (``FastPath``), with the route's own ``feed_batch`` and ``batch_response``. Nothing is
+    stored before the key and the body have passed exactly the route's checks; when it fails the
+    route answers its own way (a failed batch wrote nothing, and one stored meanwhile is answered
+    from storage: batches are idempotent by seq)."""
 
-    Nothing is stored before the key and the body have passed exactly the route's checks; everything
-    else — another route, no key or a refused one, a body not declared JSON or of no declared length,
-    an invalid body, any error of the work, dependency overrides in place — goes to the app as it
-    arrived (the body replayed), where the route answers exactly as it always did (a failed batch
-    wrote nothing, and one stored meanwhile is answered from storage: batches are idempotent by seq).
-    ``app.state.batch_fast_path = False`` sends every request to the route."""
+    path = _BATCH_PATH
+    flag = "batch_fast_path"
 
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        match = _BATCH_PATH.fullmatch(scope["path"]) if scope["type"] == "http" and scope["method"] == "POST" \
-            else None
-        application = scope.get("app")
-        if match is None or application is None or not getattr(application.state, "batch_fast_path", False) \
-                or application.dependency_overrides or not declared_json(scope):
-            await self.app(scope, receive, send)
-            return
-        try:
-            messages, body = await read_body(receive)
-        except BodyUnread as unread:
-            await self.app(scope, replaying(unread.messages, unread.error, receive), send)
-            return
-        try:
-            state = application.state
-            principal = await key_principal(state.auth, scope)
-            if principal is None or not principal.allows("device"):
-                raise _RouteAnswers
-            batch = BatchIn.model_validate_json(body)
-            response = batch_response(await feed_batch(state.db, state.sessions, principal, match.group(1), batch))
-        except Exception:  # noqa: BLE001  (refused, invalid or failed: the route answers, its own way)
-            await self.app(scope, replaying(messages, None, receive), send)
-            return
-        await response(scope, receive, send)
-
-
-class _RouteAnswers(Exception):
-    """This request is the route's to answer."""
+    async def answer(self, state: Any, match: re.Match[str], principal: Principal, body: bytes) -> Response:
+        batch = BatchIn.model_validate_json(body)
+        return batch_response(await feed_batch(state.db, state.sessions, principal, match.group(1), batch))
