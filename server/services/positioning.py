@@ -174,7 +174,7 @@ class Positioning:
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)
         except UnknownTransmittersError:
-            raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
+            raise unknown_scan(serving) from None
         return Located(fix, serving.model_id, serving.algorithm)
 
     def locate_answer(
@@ -184,19 +184,23 @@ class Positioning:
         (a ``wknn`` model measures both in one distance pass)."""
         serving = self.serving_model(site_id, model_id)
         model = self.cache.get(serving.model_id, serving.sha256)
-        threshold = coverage_threshold(model)
-        if threshold is None or not isinstance(model, WKNNModel):
+        if not isinstance(model, WKNNModel) or (threshold := coverage_threshold(model)) is None:
             return self.locate(site_id, rss, heading_deg, serving=serving)
         try:
             fix, nearest = model.locate_covered(rss, heading_deg)
         except UnknownTransmittersError:
-            raise InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}") from None
+            raise unknown_scan(serving) from None
         # a distance is ≥ 0; a scan equal to a stored fingerprint can come out at −1e-8 from rounding
         return Located(fix, serving.model_id, serving.algorithm, coverage=Coverage(ratio=max(nearest, 0.0) / threshold))
 
 
-def coverage_threshold(model: FingerprintModel) -> float | None:
-    """The coverage threshold of a model that measures coverage (``wknn``, with a finite threshold from its
-    internal cross-validation); None for the others."""
+def coverage_threshold(model: WKNNModel) -> float | None:
+    """The model's coverage threshold: finite and positive from its internal cross-validation, else None
+    (the model then cannot tell whether a scan is covered)."""
     threshold = float(getattr(model, "coverage_threshold_", math.inf))
-    return threshold if isinstance(model, WKNNModel) and math.isfinite(threshold) and threshold > 0 else None
+    return threshold if math.isfinite(threshold) and threshold > 0 else None
+
+
+def unknown_scan(serving: ServingModel) -> InvalidField:
+    """The 422 for a scan none of whose transmitters the serving model knows."""
+    return InvalidField("rss", f"no transmitter in the scan is known to model {serving.model_id}")
