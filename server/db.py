@@ -173,14 +173,14 @@ class Database:
         ``BUSY_TIMEOUT_S`` in SQLite's handler (migrations, training, the command line)."""
         self.url = url
         self.engine = make_engine(url, BUSY_TIMEOUT_S if busy_timeout_s is None else busy_timeout_s)
-        #: reads outside a transaction on a networked database: no ``BEGIN`` and no ``ROLLBACK``
-        #: round trip around them (PostgreSQL reads at READ COMMITTED take a snapshot per statement
-        #: either way); SQLite's driver begins no transaction for reads already
-        self._read_engine = self.engine if url.startswith("sqlite") else \
-            self.engine.execution_options(isolation_level="AUTOCOMMIT")
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         #: an embedded database: every call is a local file access, never a network wait
         self.embedded = url.startswith("sqlite")
+        #: reads outside a transaction on a networked database: no ``BEGIN`` and no ``ROLLBACK``
+        #: round trip around them (PostgreSQL reads at READ COMMITTED take a snapshot per statement
+        #: either way); SQLite's driver begins no transaction for reads already
+        self._read_engine = self.engine if self.embedded else \
+            self.engine.execution_options(isolation_level="AUTOCOMMIT")
         self._write_lock = (SqliteWriteLock(make_url(url).database, busy_timeout_s) if self.embedded
                             else nullcontext())
 

@@ -89,7 +89,7 @@ def batch_response(answer: BatchAnswer) -> Response:
 #: waits on the database); the rest wait their turn on the event loop. Dozens of threads taking turns
 #: on the GIL cost more CPU per batch than the batches themselves need (≈ 0.8 ms a batch more at 32
 #: at once than at 4 on PostgreSQL), and eight keep a process's share of the cores busy while the
-#: database answers, within the connection pool's ten
+#: database answers, within the connection pool's 30 (``server.db.make_engine``)
 FEED_THREADS = 8
 _feed_limiters: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, CapacityLimiter] = weakref.WeakKeyDictionary()
 

@@ -62,7 +62,7 @@ class _EKFUpdates:
         prior = x[:2].copy()
         constraint = parse_on_wall(on_wall, prior)
         if np.hypot(*(prior - beacon)) < MIN_RANGE_M:
-            # Jacobian undefined exactly on the beacon: nudge along the first axis.
+            # exactly on the beacon the log-range Jacobian is zero (no direction): nudge along the first axis.
             x[:2] = prior + np.array([MIN_RANGE_M, 0.0])
             self.ekf.x = x
         z, sigma = log_range(range_m, range_std_m)
