@@ -16,20 +16,13 @@ from server.auth import create_key
 from tests.api.test_locate_fast_path import Chunked
 from tests.api.test_sessions import BAD_BATCHES, batch, open_session, site, steps  # noqa: F401  (site: the fixture)
 from tests.conftest import ADMIN_KEY
+from tests.helpers.calls import count_async_calls
 
 
 @pytest.fixture
 def route_calls(monkeypatch) -> list[int]:
     """How many requests the route itself answered (only the route parses through ``read_json``)."""
-    calls: list[int] = []
-    route_read = sessions_module.read_json
-
-    async def counted(*args):
-        calls.append(1)
-        return await route_read(*args)
-
-    monkeypatch.setattr(sessions_module, "read_json", counted)
-    return calls
+    return count_async_calls(monkeypatch, sessions_module, "read_json")
 
 
 @pytest.fixture

@@ -14,20 +14,13 @@ from server.api.deps import positioning_service
 from server.auth import create_key
 from tests.api.test_models import SYNTH, site, train  # noqa: F401  (site: the fixture)
 from tests.conftest import ADMIN_KEY
+from tests.helpers.calls import count_async_calls
 
 
 @pytest.fixture
 def route_calls(monkeypatch) -> list[int]:
     """How many requests the route itself answered (it runs its work through ``run_blocking``)."""
-    calls: list[int] = []
-    route_work = locate_module.run_blocking
-
-    async def counted(*args):
-        calls.append(1)
-        return await route_work(*args)
-
-    monkeypatch.setattr(locate_module, "run_blocking", counted)
-    return calls
+    return count_async_calls(monkeypatch, locate_module, "run_blocking")
 
 
 @pytest.fixture
