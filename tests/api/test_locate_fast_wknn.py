@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from server.estimation.fingerprint import make_model
-from server.estimation.fingerprint.wknn import _smallest, _unique_inverse
+from server.estimation.fingerprint.posterior import unique_inverse
+from server.estimation.fingerprint.wknn import _smallest
 from tests.helpers.synthetic import make_site
 
 
@@ -81,7 +82,7 @@ def test_one_query_path_answers_as_each_step_did(site_and_model):
 @pytest.mark.parametrize("values", [[3], [5, 1, 5, 2, 1], [0, 0, 0], [9, 4, 7, 4, 9, 0, 12]])
 def test_unique_inverse_is_numpys(values):
     a = np.array(values, dtype=np.int64)
-    groups, inverse = _unique_inverse(a)
+    groups, inverse = unique_inverse(a)
     expected_groups, expected_inverse = np.unique(a, return_inverse=True)
     assert np.array_equal(groups, expected_groups) and groups.dtype == expected_groups.dtype
     assert np.array_equal(inverse, expected_inverse.reshape(-1))

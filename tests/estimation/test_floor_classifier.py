@@ -142,7 +142,10 @@ def test_knn_svc_votes_as_the_svc_and_only_among_the_allowed_groups(campus, mode
     scans, truth = _held_out(sites, leak, shift_db=-12.0, seed=17)  # a harder case: more disagreements
     Q = model.encoder_.transform(model.scan_matrix(scans))
     n_groups = len(model.group_floor_)
-    assert np.array_equal(clf.svc_groups(Q, np.ones((len(Q), n_groups), dtype=bool)), svc.predict(Q))
+    every = np.ones((len(Q), n_groups), dtype=bool)
+    assert np.array_equal(clf.svc_groups(Q, every), svc.predict(Q))
+    one_by_one = [clf.svc_groups(Q[i: i + 1], every[i: i + 1])[0] for i in range(len(Q))]  # a session's path
+    assert np.array_equal(one_by_one, svc.predict(Q))
     for b in FLOORS:
         allowed = np.tile(model.group_building_ == b, (len(Q), 1))
         assert np.all(model.group_building_[clf.svc_groups(Q, allowed)] == b)

@@ -28,7 +28,7 @@ from .calibration import IDENTITY, CovarianceCalibration
 from .dataset import FingerprintSet, ReferencePoints
 from .distance import weighted_vote
 from .features import RssEncoder, heading_features
-from .posterior import Prediction, reduce_posterior
+from .posterior import Prediction, reduce_live
 
 #: fingerprints an SVC / extra-trees floor classifier is fitted on at most (chosen on
 #: UJIIndoorLoc's choosing users: benchmarks/floor_classifier_scale.py)
@@ -184,7 +184,11 @@ class FloorKNN:
         out = np.empty(len(X), dtype=np.int64)
         for s in range(0, len(X), self.BLOCK):
             x, ok = X[s: s + self.BLOCK], allowed[s: s + self.BLOCK]
-            cross = np.asarray(sparse.csr_matrix(x) @ self.sv_)  # a scan hears few transmitters
+            if len(x) == 1:  # one scan (a session's fix): a dense product over the columns it hears
+                heard = np.flatnonzero(x[0])
+                cross = x[:, heard] @ self.sv_[heard]
+            else:  # a scan hears few transmitters: one sparse product for the block
+                cross = np.asarray(sparse.csr_matrix(x) @ self.sv_)
             d2 = (x**2).sum(axis=1)[:, None] + self.sv_sq_[None, :] - 2.0 * cross
             dec = np.exp(-self.gamma_ * np.maximum(d2, 0.0)) @ self.pair_coef_ + self.pair_b_
             both = ok[:, self.pair_i_] & ok[:, self.pair_j_]
@@ -507,7 +511,7 @@ class FingerprintModel:
         return _concat_predictions(parts)
 
     def _reduce(self, logs: np.ndarray) -> Prediction:
-        return reduce_posterior(
+        return reduce_live(
             logs, self.rp_xy_, self.rp_group_, self.group_floor_, self.group_building_,
             self.cov_floor_m_, self.n_candidates,
         )

@@ -91,6 +91,39 @@ def reduce_posterior(
     )
 
 
+def reduce_live(
+    logs: np.ndarray,
+    rp_xy: np.ndarray,
+    rp_group: np.ndarray,
+    group_floor: np.ndarray,
+    group_building: np.ndarray,
+    cov_floor_m: float,
+    n_candidates: int = 5,
+) -> Prediction:
+    """``reduce_posterior`` over only the reference points some query gives weight to (a
+    k-NN's posterior has k of thousands) and their (building, floor) groups (the group with
+    the most mass is one of them), indices mapped back (``columns_back``). The same answer
+    as over every column: a reference point of log-score −inf has probability 0. When some
+    query gives weight to none (then its floor is the first group's, uniform over its
+    points), or to every column, it is the plain reduction."""
+    live = np.isfinite(logs)
+    cols = np.flatnonzero(live.any(axis=0))
+    if len(cols) in (0, logs.shape[1]) or not live.any(axis=1).all():
+        return reduce_posterior(logs, rp_xy, rp_group, group_floor, group_building, cov_floor_m, n_candidates)
+    groups, sub_group = unique_inverse(rp_group[cols])
+    pred = reduce_posterior(logs[:, cols], rp_xy[cols], sub_group, group_floor[groups], group_building[groups],
+                            cov_floor_m, n_candidates)
+    return columns_back(pred, cols, logs.shape[1], n_candidates)
+
+
+def unique_inverse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` for a short 1-D integer array (a query's few
+    reference points' groups), without its sort machinery."""
+    distinct = sorted(set(values.tolist()))
+    index = {v: i for i, v in enumerate(distinct)}
+    return np.array(distinct, dtype=values.dtype), np.array([index[v] for v in values.tolist()], dtype=np.intp)
+
+
 def columns_back(pred: Prediction, cols: np.ndarray, n_rp: int, n_candidates: int) -> Prediction:
     """``pred``, reduced over the reference points ``cols`` only (of ``n_rp``), with its indices
     mapped back to all of them: candidates without probability become −1 and the list is

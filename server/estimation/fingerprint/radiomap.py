@@ -56,7 +56,7 @@ from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
 from .dataset import ReferencePoints, rp_display_label
 from .distance import nearest_columns
-from .posterior import columns_back, reduce_posterior
+from .posterior import reduce_live
 
 CV_FOLDS = 5
 #: kernel weights beyond this many length scales are dropped (e^-4.5 ≈ 1 %)
@@ -295,17 +295,9 @@ class RadioMapModel(FingerprintModel):
         return scores
 
     def _reduce_over(self, logs: np.ndarray, cells: np.ndarray, cell_group: np.ndarray):
-        """`reduce_posterior` over only the cells some query gives weight to (at most k per
-        query of thousands), indices mapped back; candidates padded with (-1, 0)."""
-        cols = np.flatnonzero(np.isfinite(logs).any(axis=0))
-        if not len(cols):
-            cols = np.arange(logs.shape[1])
-        pred = reduce_posterior(logs[:, cols], cells[cols], cell_group[cols], self.group_floor_,
-                                self.group_building_, self.cov_floor_m_, self.n_candidates)
-        return columns_back(pred, cols, logs.shape[1], self.n_candidates)
-
-    def _reduce(self, logs: np.ndarray):
-        return self._reduce_over(logs, self.rp_xy_, self.rp_group_)
+        """The posterior over ``cells`` (a candidate map of the cross-validation)."""
+        return reduce_live(logs, cells, cell_group, self.group_floor_, self.group_building_, self.cov_floor_m_,
+                           self.n_candidates)
 
     def _log_scores(self, Q, Hq, mask):
         D = self._distances(Q, self.GT_, self.g_sum_)

@@ -68,7 +68,6 @@ from server.estimation.types import Fix
 from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
 from .distance import nearest_columns, weighted_vote
-from .posterior import columns_back, reduce_posterior
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
@@ -90,14 +89,6 @@ def _smallest(d: np.ndarray, k: int) -> np.ndarray:
     if k == 1:
         return np.array([np.argmin(d)])
     return np.argpartition(d, (k - 2, k - 1))[:k]
-
-
-def _unique_inverse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(values, return_inverse=True)`` for a short 1-D integer array (a query's few
-    reference points' groups), without its sort machinery."""
-    distinct = sorted(set(values.tolist()))
-    index = {v: i for i, v in enumerate(distinct)}
-    return np.array(distinct, dtype=values.dtype), np.array([index[v] for v in values.tolist()], dtype=np.intp)
 
 
 def _row_keys(X: np.ndarray, row_rp: np.ndarray, block: int = 8192) -> np.ndarray:
@@ -513,24 +504,6 @@ class WKNNModel(FingerprintModel):
         finally:
             _COVERAGE_SINK.reset(token)
         return fix, float(sink[0][0])
-
-    def _reduce(self, logs: np.ndarray):
-        """The base reduction over only the reference points some query of the chunk
-        gives weight to (at most k per query instead of every reference point) and, when
-        every query gives weight to some, only their (building, floor) groups (the group
-        with the most mass is one of them), indices mapped back; candidates padded with
-        (-1, 0) to ``n_candidates``."""
-        live = np.isfinite(logs)
-        cols = np.flatnonzero(live.any(axis=0))
-        if len(cols) == 0 or len(cols) == logs.shape[1]:
-            return super()._reduce(logs)
-        rp_group, group_floor, group_building = self.rp_group_[cols], self.group_floor_, self.group_building_
-        if live.any(axis=1).all():
-            groups, rp_group = _unique_inverse(rp_group)
-            group_floor, group_building = group_floor[groups], group_building[groups]
-        pred = reduce_posterior(logs[:, cols], self.rp_xy_[cols], rp_group.reshape(-1), group_floor,
-                                group_building, self.cov_floor_m_, self.n_candidates)
-        return columns_back(pred, cols, logs.shape[1], self.n_candidates)
 
     def _hierarchy_m(self) -> int:
         return min(self.XT_.shape[1], max(self.CANDIDATES, self.building_k, self.floor_k, self.k_))
