@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 
 from server.estimation.fingerprint.features import MISSING_MODES
 from server.estimation.fingerprint.loaders import FORMATS, detect_format, load, read_uji_ble_beacons
@@ -58,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--params", default="{}", help='JSON {"knn": {"k": 5}, ...} or {"k": 5} for all')
     ap.add_argument("--with-beacons", action="store_true",
                     help="ujible: give the propagation model the beacon positions from dep/lib.csv")
+    ap.add_argument("--shift-db", type=float, default=0.0,
+                    help="add this many dB to every reading of the test rows (a phone, or a beacon power, "
+                         "reading louder or quieter than the survey's)")
     ap.add_argument("--markdown", action="store_true")
     a = ap.parse_args(argv)
     try:
@@ -77,6 +81,9 @@ def _run(a) -> int:
         train, test, desc = holdout_split(fs, a.split, a.test_fraction, a.seed)
     if not len(test):
         raise ValueError(f"the {a.split} split held out no rows: nothing to evaluate on")
+    if a.shift_db:
+        test = replace(test, rss=test.rss + a.shift_db)
+        desc += f", readings shifted by {a.shift_db:+g} dB"
     cover = set(train.rp_keys())
     coverage = sum(k in cover for k in test.rp_keys()) / max(len(test), 1)
     print(f"# {a.train} ({a.format}): {len(fs)} rows, skipped {fs.meta.get('skipped', 0)}; "

@@ -127,6 +127,21 @@ def test_evaluate_cli_prints_table(tmp_path, capsys, site_and_survey):
     assert len(lines) == 2
 
 
+def test_evaluate_cli_shifts_the_test_readings(tmp_path, capsys, site_and_survey):
+    """``--shift-db``: the held-out scans read louder; a model without an offset estimate
+    (nbc, absolute dBm) answers worse, and the header says so."""
+    _, fs = site_and_survey
+    path = tmp_path / "s.csv"
+    write_survey_csv(fs, path)
+    means = {}
+    for shift in ("0", "15"):
+        assert evaluate_cli.main([str(path), "--split", "phone", "--algorithms", "nbc", "--shift-db", shift]) == 0
+        out = capsys.readouterr().out
+        assert ("shifted by +15 dB" in out) == (shift == "15")
+        means[shift] = float(next(ln for ln in out.splitlines() if ln.startswith("nbc")).split()[1])
+    assert means["15"] > means["0"]
+
+
 def test_evaluate_on_an_empty_test_set_gives_nan_figures(site_and_survey):
     _, fs = site_and_survey
     metrics = evaluate(make_model("knn").fit(fs), fs.subset(np.zeros(len(fs), dtype=bool)))
