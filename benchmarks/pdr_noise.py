@@ -1,9 +1,11 @@
 """PDR noise levels measured on real walks: where the self-calibrating trackers' defaults come from.
 
-    python benchmarks/pdr_noise.py ../shared/data/msft_site1_f1 [--walks 0-21]
+    python benchmarks/pdr_noise.py ../shared/data/msft_site1_f1 [--walks even|odd|all] [--heading kalman|quasi-static]
 
 The project's on-phone PDR (``client_sim.pdr``: peak detector, Weinberg length, gyro +
-magnetometer Kalman heading) runs on each walk's raw IMU; the site calibration (one
+magnetometer Kalman heading; ``--heading quasi-static`` for the gyro heading whose compass
+offset is corrected in undisturbed field only, with the site field of these walks) runs on
+each walk's raw IMU; the site calibration (one
 heading offset and one Weinberg k for the site, the median of per-walk fits, as
 ``client_sim msft`` ships them) is applied. Each step inside a waypoint segment of at
 least 3 m is compared with that segment (the path between waypoints is close to straight):
@@ -36,6 +38,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from client_sim.msft import detect_steps, fit_rotation_scale, read_walk, segment_displacements  # noqa: E402
+from client_sim.msft_eval import pdr_config  # noqa: E402
 from client_sim.pdr.step_length import weinberg  # noqa: E402
 
 
@@ -52,9 +55,10 @@ def running_median(x: np.ndarray, half: int = 4) -> np.ndarray:
     return np.array([np.median(x[max(0, i - half): i + half + 1]) for i in range(len(x))])
 
 
-def measure(paths: list[Path], min_segment_m: float = 3.0) -> dict:
+def measure(paths: list[Path], min_segment_m: float = 3.0, heading: str = "kalman") -> dict:
     walks = [(p.name, read_walk(p)) for p in paths]
-    events = [(name, w, detect_steps(w)) for name, w in walks]
+    cfg = pdr_config(heading, [w for _, w in walks])
+    events = [(name, w, detect_steps(w, cfg)) for name, w in walks]
     offsets, ks = [], []
     for _, w, ev in events:
         pdr, true = segment_displacements(ev, w.waypoints, 1.0)
@@ -111,13 +115,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data_dir", type=Path)
     ap.add_argument("--walks", default="even", help="even | odd | all (indices into the sorted walk files)")
+    ap.add_argument("--heading", default="kalman", help="kalman | quasi-static | qekf (PdrConfig.heading)")
     a = ap.parse_args()
     files = sorted((a.data_dir / "path_data_files").glob("*.txt"))
     if a.walks == "even":
         files = files[::2]
     elif a.walks == "odd":
         files = files[1::2]
-    for k, v in measure(files).items():
+    for k, v in measure(files, heading=a.heading).items():
         print(f"{k:28s} {v}")
     return 0
 

@@ -36,6 +36,7 @@ import numpy as np
 from .batches import Scan
 from .imu import ImuData
 from .pdr import PdrConfig, PdrStep, heading_at, heading_track
+from .pdr.heading import field_strength_dip, gravity_up
 from .pdr.step_detection import find_step_peaks
 from .pdr.step_length import weinberg
 
@@ -235,9 +236,23 @@ class UncalibratedSteps:
     heading_deg: np.ndarray
 
 
+def field_reference(walks: list[Walk]) -> tuple[float, float]:
+    """The site's undisturbed magnetic field as its phones measure it: the median strength
+    (µT) and dip (deg, down positive) over every sample of ``walks`` (the map walks). Most
+    of a floor is only mildly disturbed, so the medians are the earth field there (site 1:
+    43 µT, 45°, the same to 0.4 µT and 0.9° in every fold)."""
+    strength, dip = [], []
+    for w in walks:
+        imu = w.imu()
+        b, d = field_strength_dip(imu.mag, gravity_up(imu.acc, 1.0 / float(np.median(np.diff(imu.t)))))
+        strength.append(b)
+        dip.append(d)
+    return float(np.median(np.concatenate(strength))), float(np.median(np.concatenate(dip)))
+
+
 def detect_steps(walk: Walk, config: PdrConfig | None = None) -> UncalibratedSteps:
-    """Run the project's on-phone PDR (peak detector + gyro/magnetometer Kalman heading)
-    on the walk's raw IMU. Headings are magnetic (``north_deg`` of the config)."""
+    """Run the project's on-phone PDR (peak detector + the config's heading filter) on the
+    walk's raw IMU. Headings are magnetic (``north_deg`` of the config)."""
     cfg = config or PdrConfig()
     imu = walk.imu()
     ev = find_step_peaks(imu.t, imu.acc, cfg.detector)

@@ -6,8 +6,10 @@
    the map walks is placed at the waypoint-interpolated position of its time and
    uploaded as a survey to a new site; a model is trained and awaited.
 2. PDR calibration: the project's on-phone PDR (:mod:`client_sim.pdr`) gives steps
-   with magnetic headings and Weinberg swings. The heading offset (magnetic north →
-   the map's +y) and the Weinberg k come, by default, from the *map* walks (all their
+   with magnetic headings and Weinberg swings (``Options.heading`` picks the heading
+   filter; for "quasi-static" the site's undisturbed field comes from the map walks).
+   The heading offset (magnetic north → the map's +y) and the Weinberg k come, by
+   default, from the *map* walks (all their
    waypoint segments: the offset and k a site's app would ship with) — nothing of a
    test walk's truth but its start. ``--calibration first-segment`` instead fits both
    per test walk on its first waypoint segments covering ≥ 10 m (an app's initial
@@ -43,6 +45,7 @@ from .msft import (
     dead_reckon,
     detect_steps,
     errors_against,
+    field_reference,
     fit_rotation_scale,
     read_walk,
     segment_displacements,
@@ -51,6 +54,7 @@ from .msft import (
     survey_rows,
     wifi_scans,
 )
+from .pdr import PdrConfig
 from .pdr.step_length import weinberg
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
@@ -96,12 +100,20 @@ class Prepared:
     scans: list[Scan]
 
 
-def prepare(path: Path, max_age_s: float, ble: bool) -> Prepared:
-    walk = read_walk(path)
+def prepare(walk: Walk, config: PdrConfig, max_age_s: float, ble: bool) -> Prepared:
     scans = wifi_scans(walk, max_age_s)
     if ble:
         scans = sorted(scans + beacon_scans(walk), key=lambda s: s["t"])
-    return Prepared(walk, detect_steps(walk), scans)
+    return Prepared(walk, detect_steps(walk, config), scans)
+
+
+def pdr_config(heading: str, map_walks: list[Walk]) -> PdrConfig:
+    """The phones' PDR for this site: ``heading`` filter; for "quasi-static" the site's
+    undisturbed field from its map walks (:func:`field_reference`), as the app ships it."""
+    if heading != "quasi-static":
+        return PdrConfig(heading=heading)
+    field_ut, dip_deg = field_reference(map_walks)
+    return PdrConfig(heading=heading, field_ut=round(field_ut, 2), dip_deg=round(dip_deg, 2))
 
 
 def _circular_median(deg: list[float]) -> float:
@@ -371,6 +383,10 @@ class Options:
     #: the step noise the phone declares: "site" = the per-segment spread (bias included),
     #: "white" = the spread about each walk's own median (the bias left to the trackers)
     step_noise: str = "site"
+    #: the phones' heading filter (PdrConfig.heading): "kalman" (gyro + magnetometer Kalman) |
+    #: "quasi-static" (gyro; compass offset in undisturbed field only: better on folds 0–1, worse
+    #: on folds 2–3 except the PF with the plan, docs/client-sim.md) | "qekf"
+    heading: str = "kalman"
     #: floor plan variants to replay every filter on (``PLANS``), and the stores' margin (m)
     plans: tuple[str, ...] = ("none",)
     plan_margin_m: float = 0.0
@@ -381,10 +397,13 @@ class Options:
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
                    test_files: list[Path], opt: Options, progress=print, transport=None) -> dict:
     ble = "ble" in opt.kinds
-    maps = [prepare(f, opt.max_age_s, ble) for f in map_files]
-    tests = [prepare(f, opt.max_age_s, ble) for f in test_files]
-    site_cal = site_calibration(maps)
-    progress(f"site calibration from {site_cal['walks']} map walks: heading offset "
+    map_walks = [read_walk(f) for f in map_files]
+    pdr = pdr_config(opt.heading, map_walks)
+    maps = [prepare(w, pdr, opt.max_age_s, ble) for w in map_walks]
+    tests = [prepare(read_walk(f), pdr, opt.max_age_s, ble) for f in test_files]
+    site_cal = site_calibration(maps) | {"heading": pdr.heading, "field_ut": pdr.field_ut, "dip_deg": pdr.dip_deg}
+    progress(f"site calibration from {site_cal['walks']} map walks ({pdr.heading} heading, field "
+             f"{pdr.field_ut} µT, dip {pdr.dip_deg}°): heading offset "
              f"{site_cal['heading_offset_deg']}°, Weinberg k {site_cal['weinberg_k']}; declared step noise "
              f"{site_cal['length_std_m']} m, "
              f"{site_cal['heading_white_std_deg' if opt.step_noise == 'white' else 'heading_std_deg']}° ({opt.step_noise})")
@@ -550,6 +569,7 @@ def main(a) -> int:
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
                   fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"),
+                  heading=getattr(a, "heading", "kalman"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
                   plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)))
     for variant in opt.plans:

@@ -4,6 +4,13 @@
   integrated gyroscope predicts, the tilt-compensated magnetometer heading corrects.
   Magnetometer readings whose field strength is off the expected one, or whose
   innovation is implausible, are rejected (indoor disturbances near steel).
+* :class:`QuasiStaticHeading` — the tilt-compensated gyroscope carries the heading; the
+  magnetometer only corrects its offset, and only where the field looks undisturbed
+  (strength and dip close to the site's, direction steady against the gyro over 1 s:
+  "quasi-static field", Afzal et al. 2011). On the MSFT walks indoor fields are biased
+  over tens of metres (the compass drifts 30–60° against the gyro within one walk); this
+  beat the Kalman on the walks it was chosen on but not on held-out ones, where one
+  disturbed but plausible start locks a wrong offset (docs/client-sim.md): an option.
 * :class:`QuaternionEKF` — attitude quaternion predicted by the gyroscope and
   corrected by the accelerometer's gravity direction (tilt); yaw comes from the
   gyroscope alone after the initial alignment, so it is the drift baseline.
@@ -100,6 +107,85 @@ class GyroMagKalman:
                     P = P - np.outer(K, P[0, :])
             out[k] = h
         return np.degrees(out) % 360.0
+
+
+def gravity_up(acc: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Unit "up" vector per sample in phone axes: the accelerometer averaged over 1 s."""
+    up = _moving_mean(acc, int(rate_hz))
+    return up / np.linalg.norm(up, axis=1, keepdims=True)
+
+
+def field_strength_dip(mag: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: the magnetic field's strength (µT) and dip below the horizon (deg)."""
+    strength = np.linalg.norm(mag, axis=1)
+    return strength, np.degrees(np.arcsin(np.clip(-(mag * up).sum(axis=1) / strength, -1.0, 1.0)))
+
+
+class QuasiStaticHeading:
+    """Gyro heading plus a magnetometer-estimated offset, corrected in quasi-static field only.
+
+    The heading is ``g(t) + c``: ``g`` integrates the gyroscope's rate about gravity
+    (tilt-compensated, so a tilted phone turns 90° when the walker does), and ``c``, the
+    offset to magnetic north, is a one-state Kalman filter (random walk ``q_dps`` °/√s)
+    updated at ``update_hz`` by ``compass − g`` where the field is quasi-static: its
+    strength within ``field_tolerance_ut`` and its dip within ``dip_tolerance_deg`` of the
+    site's, and ``compass − g`` steady (circular std < ``steady_deg``) over ``window_s``.
+    The defaults were chosen on MSFT site-1 folds 0–1 (docs/client-sim.md).
+    """
+
+    def __init__(self, q_dps: float = 0.1, mag_std_deg: float = 20.0, initial_std_deg: float = 20.0,
+                 field_tolerance_ut: float = 8.0, dip_tolerance_deg: float = 10.0, steady_deg: float = 3.0,
+                 window_s: float = 1.0, update_hz: float = 10.0):
+        self.q = math.radians(q_dps) ** 2
+        self.r = math.radians(mag_std_deg) ** 2
+        self.p0 = math.radians(initial_std_deg) ** 2
+        self.field_tol, self.dip_tol, self.steady = field_tolerance_ut, dip_tolerance_deg, steady_deg
+        self.window_s, self.update_hz = window_s, update_hz
+
+    def quasi_static(self, t: np.ndarray, offset: np.ndarray, strength: np.ndarray, dip: np.ndarray,
+                     field_ut: float, dip_deg: float) -> np.ndarray:
+        """Samples where the compass may correct the offset (trailing window, causal)."""
+        n = max(2, int(self.window_s / np.median(np.diff(t))))
+        csum = np.concatenate([[0], np.cumsum(np.exp(1j * offset))])
+        idx = np.arange(len(t))
+        lo = np.maximum(idx + 1 - n, 0)
+        resultant = np.abs(csum[idx + 1] - csum[lo]) / (idx + 1 - lo)
+        circ_std = np.degrees(np.sqrt(-2 * np.log(np.clip(resultant, 1e-9, 1.0))))
+        return ((idx + 1 >= n) & (circ_std < self.steady) & (np.abs(strength - field_ut) < self.field_tol)
+                & (np.abs(dip - dip_deg) < self.dip_tol))
+
+    def run(self, imu: ImuData, north_deg: float = 0.0, initial_heading_deg: float | None = None,
+            field_ut: float | None = None, dip_deg: float | None = None) -> np.ndarray:
+        """Heading (deg) at every IMU sample. ``field_ut``/``dip_deg``: the site's undisturbed
+        field (from its map walks); ``None`` takes this recording's median (offline only)."""
+        t = imu.t
+        rate = 1.0 / float(np.median(np.diff(t)))
+        up = gravity_up(imu.acc, rate)
+        # the gyro measures counter-clockwise rate; heading is clockwise
+        g = np.cumsum(-(imu.gyro * up).sum(axis=1) * np.diff(t, prepend=t[0]))
+        compass = np.radians(mag_heading_deg(up, imu.mag, north_deg))
+        offset = np.angle(np.exp(1j * (compass - g)))
+        strength, dip = field_strength_dip(imu.mag, up)
+        ok = self.quasi_static(t, offset, strength, dip, float(np.median(strength)) if field_ut is None else field_ut,
+                               float(np.median(dip)) if dip_deg is None else dip_deg)
+        if initial_heading_deg is not None:
+            c, P = math.radians(initial_heading_deg), math.radians(5.0) ** 2
+        else:  # the compass over the first second, whatever the field there
+            first = offset[t < t[0] + 1.0]
+            c, P = math.atan2(np.sin(first).mean(), np.cos(first).mean()), self.p0
+        every = max(1, int(round(rate / self.update_hz)))
+        cs = np.empty(len(t))
+        done, last = 0, t[0]
+        for k in np.flatnonzero(ok & (np.arange(len(t)) % every == 0)):
+            cs[done:k] = c
+            done = int(k)
+            P += self.q * (t[k] - last)
+            last = t[k]
+            gain = P / (P + self.r)
+            c += gain * _wrap(offset[k] - c)
+            P -= gain * P
+        cs[done:] = c
+        return np.degrees(g + cs) % 360.0
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
