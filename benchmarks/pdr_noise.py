@@ -1,6 +1,6 @@
 """PDR noise levels measured on real walks: where the self-calibrating trackers' defaults come from.
 
-    python benchmarks/pdr_noise.py ../shared/data/msft_site1_f1 [--walks even|odd|all] [--heading kalman|quasi-static]
+    python benchmarks/pdr_noise.py ../shared/data/msft_site1_f1 [--walks even|odd|all] [--heading kalman|gyro|quasi-static]
 
 The project's on-phone PDR (``client_sim.pdr``: peak detector, Weinberg length, gyro +
 magnetometer Kalman heading; ``--heading quasi-static`` for the gyro heading whose compass
@@ -115,7 +115,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data_dir", type=Path)
     ap.add_argument("--walks", default="even", help="even | odd | all (indices into the sorted walk files)")
-    ap.add_argument("--heading", default="kalman", help="kalman | quasi-static | qekf (PdrConfig.heading)")
+    ap.add_argument("--heading", default="kalman", help="kalman | gyro | quasi-static | qekf (PdrConfig.heading)")
     a = ap.parse_args()
     files = sorted((a.data_dir / "path_data_files").glob("*.txt"))
     if a.walks == "even":

@@ -313,6 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration", choices=("site", "first-segment", "none"), default="site",
                    help="PDR heading offset and Weinberg k: from the map walks (site), from each test walk's "
                         "first >=10 m of waypoints (first-segment, that window is not scored), or none")
+    p.add_argument("--heading", choices=("gyro", "kalman", "quasi-static", "qekf"), default="gyro",
+                   help="the phones' PDR heading: the gyro aligned once by the compass (gyro), gyro + compass "
+                        "Kalman (kalman), compass in undisturbed field only (quasi-static), gyro + gravity (qekf)")
     p.add_argument("--max-age", type=float, default=3.0, help="drop WiFi entries last seen longer ago (s)")
     p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
     p.add_argument("--initial", choices=("yes", "no", "both"), default="yes",

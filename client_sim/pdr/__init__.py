@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..imu import ImuData
-from .heading import GyroMagKalman, QuasiStaticHeading, QuaternionEKF
+from .heading import GyroHeading, GyroMagKalman, QuasiStaticHeading, QuaternionEKF
 from .step_detection import PeakDetectorParams, find_step_peaks
 from .step_length import DEFAULT_WEINBERG_K, weinberg
 
@@ -31,7 +31,8 @@ class PdrStep:
 class PdrConfig:
     weinberg_k: float = DEFAULT_WEINBERG_K
     #: "kalman" (gyro + magnetometer Kalman) | "quasi-static" (gyro, compass offset in undisturbed
-    #: field only: :class:`QuasiStaticHeading`) | "qekf" (gyro + accelerometer)
+    #: field only: :class:`QuasiStaticHeading`) | "gyro" (gyro aligned once by the compass:
+    #: :class:`GyroHeading`) | "qekf" (gyro + accelerometer)
     heading: str = "kalman"
     north_deg: float = 0.0  # magnetic north in the site frame, known to the app from the site map
     #: the site's undisturbed field strength (µT) and dip (deg) for "quasi-static"; None = the recording's median
@@ -44,6 +45,8 @@ def heading_track(imu: ImuData, config: PdrConfig, initial_heading_deg: float | 
     """Heading (deg) at each IMU sample, by the configured filter."""
     if config.heading == "qekf":
         return QuaternionEKF().run(imu, initial_heading_deg=initial_heading_deg or 0.0)
+    if config.heading == "gyro":
+        return GyroHeading().run(imu, config.north_deg, initial_heading_deg)
     if config.heading == "quasi-static":
         return QuasiStaticHeading().run(imu, config.north_deg, initial_heading_deg, config.field_ut, config.dip_deg)
     return GyroMagKalman().run(imu, north_deg=config.north_deg, initial_heading_deg=initial_heading_deg)

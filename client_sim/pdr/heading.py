@@ -188,6 +188,19 @@ class QuasiStaticHeading:
         return np.degrees(g + cs) % 360.0
 
 
+class GyroHeading(QuasiStaticHeading):
+    """The tilt-compensated gyro, aligned once by the compass over its first second and never
+    corrected after (``QuasiStaticHeading`` with no quasi-static samples).
+
+    On the MSFT walks the compass swings 30–60° within a walk indoors, while the gyro's offset
+    stays nearly constant over one: a constant offset is what the self-calibrating trackers
+    learn as their heading bias, a wandering one is not (docs/client-sim.md)."""
+
+    def quasi_static(self, t: np.ndarray, offset: np.ndarray, strength: np.ndarray, dip: np.ndarray,
+                     field_ut: float, dip_deg: float) -> np.ndarray:
+        return np.zeros(len(t), dtype=bool)
+
+
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b

@@ -11,7 +11,7 @@ from client_sim.imu import ImuData
 from client_sim.msft import Walk, field_reference
 from client_sim.msft_eval import pdr_config
 from client_sim.pdr import PdrConfig, heading_track
-from client_sim.pdr.heading import QuasiStaticHeading, mag_heading_deg
+from client_sim.pdr.heading import GyroHeading, GyroMagKalman, QuasiStaticHeading, mag_heading_deg
 
 RATE = 50.0
 EARTH = np.array([0.0, 25.0, -36.0])  # ENU, north along +y: 43.8 µT, dip 55.2°
@@ -76,6 +76,24 @@ def test_turn_through_a_magnetic_disturbance_stays_within_4_degrees():
     assert _err(out, heading)[t > 1.0].max() < 4.0
 
 
+def test_the_gyro_heading_ignores_the_compass_after_its_first_second():
+    """``GyroHeading``: the disturbance moves neither it nor its offset, where the gyro +
+    compass Kalman is pulled off; a compass 40° off in the first second stays a constant
+    40° offset (what the self-calibrating trackers learn as their heading bias)."""
+    t, heading, imu = _turn_through_disturbance()
+    gyro = GyroHeading().run(imu)
+    kalman = GyroMagKalman().run(imu)
+    inside = (t > 30) & (t < 45)
+    assert _err(gyro, heading)[t > 1.0].max() < 3.0
+    assert _err(kalman[inside], heading[inside]).max() > 2 * _err(gyro[inside], heading[inside]).max()
+    field = np.tile(EARTH, (len(t), 1))
+    field[t < 1.0] = _rz(math.radians(40.0)) @ EARTH  # the first second's field turned by 40° (steel)
+    shifted = GyroHeading().run(_trace(heading, pitch_deg=30.0, field_world=field))
+    residual = (shifted - heading + 180.0) % 360.0 - 180.0
+    assert np.ptp(residual[t > 1.0]) < 3.0 and 30.0 < abs(float(np.median(residual))) < 50.0
+    assert heading_track(imu, PdrConfig(heading="gyro")) == pytest.approx(gyro)
+
+
 def test_turn_on_a_pitched_phone_is_the_full_90_degrees():
     """Tilt compensation: integrating the phone's z gyro alone would turn 90°·cos 30° = 78°."""
     t, heading, imu = _turn_through_disturbance()
@@ -127,7 +145,7 @@ def test_msft_choosing_folds_pdr_alone_beats_the_kalman():
     from client_sim.msft import dead_reckon, detect_steps, errors_against, read_walk, steps_from_events
     from client_sim.msft_eval import Prepared, site_calibration, walk_files
 
-    root = Path(os.environ.get("MSFT_SITE1_DIR", "/work/shared/data/msft_site1_f1"))
+    root = Path(os.environ.get("MSFT_SITE1_DIR", Path(__file__).resolve().parents[3] / "shared/data/msft_site1_f1"))
     files = walk_files(root)
     if not files:
         pytest.skip("MSFT site-1 walks not available")
