@@ -1,4 +1,5 @@
-"""``reduce_live``: the reduction over the live reference points is the full reduction."""
+"""``reduce_live``: the reduction over the live reference points (and of one query, written
+out) is the full reduction."""
 
 import numpy as np
 import pytest
@@ -37,7 +38,7 @@ def _same(a, b):
     assert a.top_rp.shape == b.top_rp.shape
 
 
-@pytest.mark.parametrize(("n", "k"), [(1, 3), (1, 9), (7, 3), (20, 12)])
+@pytest.mark.parametrize(("n", "k"), [(1, 3), (1, 9), (1, N_RP), (7, 3), (20, 12)])
 def test_live_columns_reduce_as_every_column(n, k):
     rp_xy, rp_group, floor, building = _site(n + k)
     logs = _knn_logs(100 + n, n, k)

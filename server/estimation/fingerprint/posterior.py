@@ -105,8 +105,12 @@ def reduce_live(
     the most mass is one of them), indices mapped back (``columns_back``). The same answer
     as over every column: a reference point of log-score −inf has probability 0. When some
     query gives weight to none (then its floor is the first group's, uniform over its
-    points), or to every column, it is the plain reduction."""
+    points), or to every column, it is the plain reduction. One query (a session's fix, a
+    ``locate``) takes ``_reduce_one``."""
     live = np.isfinite(logs)
+    if len(logs) == 1 and live.any():
+        return _reduce_one(logs[0], np.flatnonzero(live[0]), rp_xy, rp_group, group_floor, group_building,
+                           cov_floor_m, n_candidates)
     cols = np.flatnonzero(live.any(axis=0))
     if len(cols) in (0, logs.shape[1]) or not live.any(axis=1).all():
         return reduce_posterior(logs, rp_xy, rp_group, group_floor, group_building, cov_floor_m, n_candidates)
@@ -114,6 +118,32 @@ def reduce_live(
     pred = reduce_posterior(logs[:, cols], rp_xy[cols], sub_group, group_floor[groups], group_building[groups],
                             cov_floor_m, n_candidates)
     return columns_back(pred, cols, logs.shape[1], n_candidates)
+
+
+def _reduce_one(logs: np.ndarray, cols: np.ndarray, rp_xy: np.ndarray, rp_group: np.ndarray,
+                group_floor: np.ndarray, group_building: np.ndarray, cov_floor_m: float,
+                n_candidates: int) -> Prediction:
+    """``reduce_posterior`` of one query over its live columns ``cols``, written out for the
+    few values a session's fix has (a dozen NumPy calls on (n_rp,) arrays cost more than the
+    arithmetic): the same floor, moments and candidates."""
+    p = np.exp(logs[cols] - logs[cols].max())
+    groups = rp_group[cols]
+    best = int(np.argmax(np.bincount(groups, weights=p)))  # ties: the lowest group
+    keep = groups == best
+    cols, p = cols[keep], p[keep] / p[keep].sum()
+    xy = rp_xy[cols]
+    mean = p @ xy
+    d = xy - mean
+    cov = (d * p[:, None]).T @ d + cov_floor_m**2 * np.eye(2)
+    c = min(n_candidates, len(rp_xy))
+    order = np.argsort(-p, kind="stable")[:c]
+    top = np.full(c, -1)
+    top_p = np.zeros(c)
+    top[: len(order)], top_p[: len(order)] = cols[order], p[order]
+    return Prediction(
+        x=mean[:1].copy(), y=mean[1:].copy(), floor=group_floor[[best]], building=group_building[[best]],
+        covariance=cov[None], best_rp=top[:1].copy(), top_rp=top[None], top_p=top_p[None],
+    )
 
 
 def unique_inverse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
