@@ -175,6 +175,8 @@ class FloorKNN:
         allowed groups the SVC never saw gets its first allowed group."""
         from scipy import sparse
 
+        sv = self.sv_
+        assert sv is not None, "svc_groups needs the SVC (fit with svc=)"
         X = np.asarray(design, dtype=np.float64)
         n_groups = allowed.shape[1]
         to_i = np.zeros((len(self.pair_i_), n_groups))
@@ -186,9 +188,9 @@ class FloorKNN:
             x, ok = X[s: s + self.BLOCK], allowed[s: s + self.BLOCK]
             if len(x) == 1:  # one scan (a session's fix): a dense product over the columns it hears
                 heard = np.flatnonzero(x[0])
-                cross = x[:, heard] @ self.sv_[heard]
+                cross = x[:, heard] @ sv[heard]
             else:  # a scan hears few transmitters: one sparse product for the block
-                cross = np.asarray(sparse.csr_matrix(x) @ self.sv_)
+                cross = np.asarray(sparse.csr_matrix(x) @ sv)
             d2 = (x**2).sum(axis=1)[:, None] + self.sv_sq_[None, :] - 2.0 * cross
             dec = np.exp(-self.gamma_ * np.maximum(d2, 0.0)) @ self.pair_coef_ + self.pair_b_
             both = ok[:, self.pair_i_] & ok[:, self.pair_j_]
