@@ -203,7 +203,8 @@ class FloorKNN:
         if not len(design):
             return np.zeros(0, dtype=np.int64)
         D = self.distances(design)
-        b = self._vote(D, self.rp_building_)
+        buildings = np.unique(self.group_building_)
+        b = np.repeat(buildings, len(D)) if len(buildings) == 1 else self._vote(D, self.rp_building_)
         in_b = self.group_building_[None, :] == b[:, None]  # (nq, groups)
         if self.sv_ is None:
             return self._vote(np.where(in_b[:, self.rp_group_], D, np.inf), self.rp_group_)
