@@ -68,6 +68,20 @@ def test_pf_round_trip_restores_rng_state():
     assert not np.array_equal(other.particles, t.particles)
 
 
+@pytest.mark.parametrize("name", ["pf", "pf-xy"])
+def test_pf_restores_its_own_parameters_without_default_ones(name):
+    """A PF restores with the parameters it was made with (``_restore`` configures it without
+    drawing a default cloud first), and continues as the original."""
+    params = {"n_particles": 300, "min_particles": 300, "q": 0.05}
+    if name == "pf":
+        params["bias0_std_deg"] = 20.0
+    t = make_tracker(name, [1.0, 2.0], np.eye(2) * 3.0, walls=WALLS, seed=9, **params)
+    restored = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    assert type(restored) is type(t) and restored.params == t.params and len(restored.particles) == 300
+    assert restored.walls.tolist() == t.walls.tolist()
+    assert _apply(restored, _inputs(4)) == _apply(t, _inputs(4))
+
+
 def test_from_dict_rejects_wrong_class_and_version():
     d = make_tracker("kf", [0, 0], np.eye(2)).to_dict()
     with pytest.raises(ValueError):

@@ -215,8 +215,13 @@ class Tracker(ABC):
             raise ValueError(f"dict is for tracker {name!r}, not {target.name!r}")
         if data.get("version") != FORMAT_VERSION:
             raise ValueError(f"unsupported tracker dict version {data.get('version')!r}")
-        state = data["state"]
-        obj = target(state["mean"], state["cov"], walls=data.get("walls"), seed=None, **data.get("params", {}))
+        return target._restore(data["state"], data.get("walls"), data.get("params", {}))
+
+    @classmethod
+    def _restore(cls, state: dict[str, Any], walls, params: dict[str, Any]) -> Tracker:
+        """A tracker holding ``state`` (a ``_state()``): built from its mean and covariance,
+        then loaded. A tracker whose construction draws what loading replaces overrides it."""
+        obj = cls(state["mean"], state["cov"], walls=walls, seed=None, **params)
         obj._load_state(state)
         return obj
 

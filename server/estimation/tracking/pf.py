@@ -88,12 +88,24 @@ class ParticleFilterXYTracker(Tracker):
     _grid: tuple[np.ndarray, np.ndarray] | None  # the particles' grid per column (lo, step; None: float32 values)
     weights: np.ndarray  # (n,), sum 1
 
-    def __init__(
+    def __init__(self, initial_mean, initial_cov, walls=None, seed=None, **params):
+        self._configure(walls, seed, **params)
+        self.reset(initial_mean, initial_cov)
+
+    @classmethod
+    def _restore(cls, state: dict, walls, params: dict) -> Tracker:
+        """Configured and loaded without first drawing the particles that loading replaces
+        (two thirds of a restore's cost)."""
+        obj = cls.__new__(cls)
+        obj._configure(walls, None, **params)
+        obj._load_state(state)
+        return obj
+
+    def _configure(
         self,
-        initial_mean,
-        initial_cov,
-        walls=None,
-        seed=None,
+        walls,
+        seed,
+        *,
         n_particles: int = 1000,
         q: float = 0.01,
         resample_threshold: float = 0.5,
@@ -101,8 +113,9 @@ class ParticleFilterXYTracker(Tracker):
         min_particles: int = KLD_MIN_PARTICLES,
         kld_bin_m: float = KLD_BIN_M,
         kld_epsilon: float = KLD_EPSILON,
-    ):
-        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
+    ) -> None:
+        """Everything but the particles: parameters, generator, floor plan."""
+        Tracker.__init__(self, None, None, walls=walls, seed=seed)
         if n_particles < 2:
             raise ValueError("n_particles must be at least 2")
         if not 2 <= min_particles <= n_particles:
@@ -123,7 +136,6 @@ class ParticleFilterXYTracker(Tracker):
         #: the floor's walkable area (None: unconstrained); set by the session, not stored
         self.walkable: floorplan.Walkable | None = None
         self._wall_index: floorplan.WallIndex | None = None
-        self.reset(initial_mean, initial_cov)
 
     # -- filter -------------------------------------------------------------------
     def predict(self, step: Step) -> None:
@@ -326,28 +338,20 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     name = "pf"
     dim = 4
 
-    def __init__(
+    def _configure(
         self,
-        initial_mean,
-        initial_cov,
-        walls=None,
-        seed=None,
-        n_particles: int = 1000,
-        q: float = 0.01,
-        resample_threshold: float = 0.5,
-        max_range_m: float = 3.0,
+        walls,
+        seed,
+        *,
         bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
-        min_particles: int = KLD_MIN_PARTICLES,
-        kld_bin_m: float = KLD_BIN_M,
-        kld_epsilon: float = KLD_EPSILON,
-    ):
+        **pf_params,
+    ) -> None:
+        """The seed form's configuration (``pf_params``) plus the calibration's random walks."""
         self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
-        super().__init__(initial_mean, initial_cov, walls=walls, seed=seed, n_particles=n_particles, q=q,
-                         resample_threshold=resample_threshold, max_range_m=max_range_m,
-                         min_particles=min_particles, kld_bin_m=kld_bin_m, kld_epsilon=kld_epsilon)
+        super()._configure(walls, seed, **pf_params)
         self.params.update(self._cal)
 
     def predict(self, step: Step) -> None:
