@@ -26,13 +26,15 @@ def test_two_buildings_at_the_same_level_are_two_floors(page, live_server, admin
     login(page, live_server.url, ADMIN_KEY)
     page.click(f"#sites [data-site='{sid}']")
     page.wait_for_function("document.querySelectorAll('#floor option').length === 2")
-    page.wait_for_selector("circle.rp")
+    page.wait_for_function("document.querySelectorAll('circle.rp').length === 2"
+                           " && document.querySelectorAll('line.wall').length === 1")
     options = page.locator("#floor option")
     assert [options.nth(i).get_attribute("value") for i in range(options.count())] == ["0:0", "1:0"]
     assert "building 1" in options.nth(1).text_content()
     labels = lambda: sorted(c.get_attribute("data-label") for c in page.locator("circle.rp").all())  # noqa: E731
     assert labels() == ["b0-1", "b0-3"] and page.locator("line.wall").count() == 1
     page.select_option("#floor", "1:0")
-    page.wait_for_function("document.querySelectorAll('circle.rp').length === 3")
+    page.wait_for_function("document.querySelectorAll('circle.rp').length === 3"
+                           " && document.querySelectorAll('line.wall').length === 2")
     assert labels() == ["b1-2", "b1-4", "b1-6"] and page.locator("line.wall").count() == 2
     assert page.errors == []
