@@ -3,8 +3,9 @@
     python benchmarks/pdr_noise.py ../shared/data/msft_site1_f1 [--walks even|odd|all] [--heading kalman|gyro|quasi-static]
 
 The project's on-phone PDR (``client_sim.pdr``: peak detector, Weinberg length, gyro +
-magnetometer Kalman heading; ``--heading quasi-static`` for the gyro heading whose compass
-offset is corrected in undisturbed field only, with the site field of these walks) runs on
+magnetometer Kalman heading; ``--heading gyro`` for the gyro aligned once by the compass,
+``--heading quasi-static`` for the gyro heading whose compass offset is corrected in
+undisturbed field only, with the site field of these walks) runs on
 each walk's raw IMU; the site calibration (one
 heading offset and one Weinberg k for the site, the median of per-walk fits, as
 ``client_sim msft`` ships them) is applied. Each step inside a waypoint segment of at

@@ -11,6 +11,9 @@
   over tens of metres (the compass drifts 30–60° against the gyro within one walk); this
   beat the Kalman on the walks it was chosen on but not on held-out ones, where one
   disturbed but plausible start locks a wrong offset (docs/client-sim.md): an option.
+* :class:`GyroHeading` — the same gyroscope heading, aligned once by the compass over the
+  first second and never corrected after: its offset stays nearly constant over a walk,
+  which the self-calibrating trackers learn (``client_sim msft``'s default, docs/client-sim.md).
 * :class:`QuaternionEKF` — attitude quaternion predicted by the gyroscope and
   corrected by the accelerometer's gravity direction (tilt); yaw comes from the
   gyroscope alone after the initial alignment, so it is the drift baseline.
@@ -142,9 +145,13 @@ class QuasiStaticHeading:
         self.field_tol, self.dip_tol, self.steady = field_tolerance_ut, dip_tolerance_deg, steady_deg
         self.window_s, self.update_hz = window_s, update_hz
 
-    def quasi_static(self, t: np.ndarray, offset: np.ndarray, strength: np.ndarray, dip: np.ndarray,
-                     field_ut: float, dip_deg: float) -> np.ndarray:
-        """Samples where the compass may correct the offset (trailing window, causal)."""
+    def quasi_static(self, t: np.ndarray, offset: np.ndarray, mag: np.ndarray, up: np.ndarray,
+                     field_ut: float | None, dip_deg: float | None) -> np.ndarray:
+        """Samples where the compass may correct the offset (trailing window, causal);
+        ``field_ut``/``dip_deg`` None: this recording's median."""
+        strength, dip = field_strength_dip(mag, up)
+        field_ut = float(np.median(strength)) if field_ut is None else field_ut
+        dip_deg = float(np.median(dip)) if dip_deg is None else dip_deg
         n = max(2, int(self.window_s / np.median(np.diff(t))))
         csum = np.concatenate([[0], np.cumsum(np.exp(1j * offset))])
         idx = np.arange(len(t))
@@ -165,9 +172,7 @@ class QuasiStaticHeading:
         g = np.cumsum(-(imu.gyro * up).sum(axis=1) * np.diff(t, prepend=t[0]))
         compass = np.radians(mag_heading_deg(up, imu.mag, north_deg))
         offset = np.angle(np.exp(1j * (compass - g)))
-        strength, dip = field_strength_dip(imu.mag, up)
-        ok = self.quasi_static(t, offset, strength, dip, float(np.median(strength)) if field_ut is None else field_ut,
-                               float(np.median(dip)) if dip_deg is None else dip_deg)
+        ok = self.quasi_static(t, offset, imu.mag, up, field_ut, dip_deg)
         if initial_heading_deg is not None:
             c, P = math.radians(initial_heading_deg), math.radians(5.0) ** 2
         else:  # the compass over the first second, whatever the field there
@@ -196,8 +201,8 @@ class GyroHeading(QuasiStaticHeading):
     stays nearly constant over one: a constant offset is what the self-calibrating trackers
     learn as their heading bias, a wandering one is not (docs/client-sim.md)."""
 
-    def quasi_static(self, t: np.ndarray, offset: np.ndarray, strength: np.ndarray, dip: np.ndarray,
-                     field_ut: float, dip_deg: float) -> np.ndarray:
+    def quasi_static(self, t: np.ndarray, offset: np.ndarray, mag: np.ndarray, up: np.ndarray,
+                     field_ut: float | None, dip_deg: float | None) -> np.ndarray:
         return np.zeros(len(t), dtype=bool)
 
 
