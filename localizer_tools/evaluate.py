@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import replace
 
@@ -81,6 +82,8 @@ def _run(a) -> int:
         train, test, desc = holdout_split(fs, a.split, a.test_fraction, a.seed)
     if not len(test):
         raise ValueError(f"the {a.split} split held out no rows: nothing to evaluate on")
+    if not math.isfinite(a.shift_db):
+        raise ValueError(f"--shift-db must be a finite number of dB, not {a.shift_db}")
     if a.shift_db:
         test = replace(test, rss=test.rss + a.shift_db)
         desc += f", readings shifted by {a.shift_db:+g} dB"

@@ -140,6 +140,8 @@ def test_evaluate_cli_shifts_the_test_readings(tmp_path, capsys, site_and_survey
         assert ("shifted by +15 dB" in out) == (shift == "15")
         means[shift] = float(next(ln for ln in out.splitlines() if ln.startswith("nbc")).split()[1])
     assert means["15"] > means["0"]
+    assert evaluate_cli.main([str(path), "--split", "phone", "--algorithms", "nbc", "--shift-db", "nan"]) == 2
+    assert "--shift-db must be a finite number" in capsys.readouterr().err
 
 
 def test_evaluate_on_an_empty_test_set_gives_nan_figures(site_and_survey):
