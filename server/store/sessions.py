@@ -16,14 +16,17 @@ from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
 from server.estimation.types import CrowdPoint, Estimate
-from server.store._results import first, tuples
-from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession
+from server.store._direct import DirectStatement
+from server.store._results import tuples
+from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession, utcnow
 
 _SESSIONS, _SITES = cast(Table, TrackingSession.__table__), cast(Table, Site.__table__)
 _BATCHES, _ESTIMATES = cast(Table, SessionBatch.__table__), cast(Table, TrackEstimate.__table__)
 _FINGERPRINTS = cast(Table, Fingerprint.__table__)
 
-_FEED_STATE = (
+#: the batch path's statements (``feed_state``, ``save_batch``) run on the driver's cursor (``_direct``); its
+#: inserts name every column, so a batch's ``created_at`` is given (by the column default's own ``utcnow``)
+_FEED_STATE = DirectStatement(
     select(
         _SESSIONS.c.site_id, _SESSIONS.c.owner_key, _SESSIONS.c.model_id, _SESSIONS.c.status, _SESSIONS.c.state,
         _SESSIONS.c.last_seq, _SESSIONS.c.track_length, _SITES.c.revision.label("site_revision"),
@@ -34,7 +37,7 @@ _FEED_STATE = (
 _STORED_ANSWER = select(_BATCHES.c.answer).where(
     _BATCHES.c.session_id == bindparam("session_id"), _BATCHES.c.seq == bindparam("seq")
 )
-_CLAIM_SEQ = (
+_CLAIM_SEQ = DirectStatement(
     update(_SESSIONS)
     .where(
         _SESSIONS.c.id == bindparam("sid"),
@@ -43,8 +46,9 @@ _CLAIM_SEQ = (
     )
     .values(state=bindparam("new_state"), last_seq=bindparam("new_seq"), track_length=bindparam("new_length"))
 )
-_INSERT_ANSWER = insert(_BATCHES)
-_INSERT_ESTIMATES = insert(_ESTIMATES)
+_INSERT_ANSWER = DirectStatement(insert(_BATCHES).values({c.name: bindparam(c.name) for c in _BATCHES.columns}))
+_INSERT_ESTIMATES = DirectStatement(
+    insert(_ESTIMATES).values({c.name: bindparam(c.name) for c in _ESTIMATES.columns}))
 _DATE_INITIAL = (
     update(_ESTIMATES)
     .where(_ESTIMATES.c.session_id == bindparam("sid"), _ESTIMATES.c.idx == 0, _ESTIMATES.c.t.is_(None))
@@ -115,7 +119,7 @@ def add_session(
     s.add(row)
     s.flush()
     if estimates:
-        s.execute(_INSERT_ESTIMATES, _estimate_rows(session_id, 0, None, estimates))
+        _INSERT_ESTIMATES.execute_many(s.connection(), _estimate_rows(session_id, 0, None, estimates))
     return _info(row)
 
 
@@ -274,7 +278,7 @@ def close_session(s: Session, session_id: str) -> bool:
 def feed_state(conn: Connection, session_id: str) -> FeedState | None:
     """The session's row with its site's revision, or None. A plain read (no lock):
     ``save_batch`` checks that nothing changed since."""
-    row = first(conn.execute(_FEED_STATE, {"session_id": session_id}))
+    row = _FEED_STATE.first(conn, {"session_id": session_id})
     return None if row is None else FeedState(*row)
 
 
@@ -300,15 +304,16 @@ def save_batch(
     (SQLite) before anything else is written; a concurrent feeder of the same session
     finds ``last_seq`` moved and gets ``False`` (nothing written; it re-reads and retries).
     """
-    claimed = conn.execute(_CLAIM_SEQ, {
+    claimed = _CLAIM_SEQ.execute(conn, {
         "sid": session_id, "expected_seq": expected_last_seq, "new_state": state, "new_seq": answer.seq,
         "new_length": first_idx + len(estimates),
     })
-    if claimed.rowcount != 1:
+    if claimed != 1:
         return False
-    conn.execute(_INSERT_ANSWER, [{"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict()}])
+    _INSERT_ANSWER.execute(
+        conn, {"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict(), "created_at": utcnow()})
     if estimates:
-        conn.execute(_INSERT_ESTIMATES, _estimate_rows(session_id, first_idx, answer.seq, estimates))
+        _INSERT_ESTIMATES.execute_many(conn, _estimate_rows(session_id, first_idx, answer.seq, estimates))
     if init_t is not None:  # the initial estimate takes the time of the session's first input
         conn.execute(_DATE_INITIAL, {"sid": session_id, "init_t": init_t})
     return True

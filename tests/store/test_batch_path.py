@@ -93,3 +93,60 @@ def test_a_read_on_sqlite_is_as_before(db, session_id):
     with db.read() as conn:
         assert sessions.feed_state(conn, session_id) is not None
         assert not conn.connection.driver_connection.in_transaction  # type: ignore[union-attr]
+
+
+STEP = Estimate(0.5, 1.5, 2.0, 0, ((1.2, 0.1), (0.1, 1.3)), "step")
+
+
+def _stored_batches(db, session_id: str) -> list[tuple]:
+    """The stored batch rows as the driver returns them (no column type processing)."""
+    with db.read() as conn:
+        return [tuple(r) for r in conn.exec_driver_sql(
+            f"SELECT seq, answer, created_at FROM session_batches WHERE session_id = '{session_id}' ORDER BY seq")]
+
+
+def test_the_batch_path_stores_what_core_stores(db, session_id):
+    """``save_batch`` runs on the driver's cursor (``store._direct``): its rows must be the ones
+    Core's own insert of the same values stores, byte for byte where the driver gives text."""
+    from sqlalchemy import insert
+
+    from server.tables import SessionBatch, TrackEstimate, utcnow
+
+    answer = BatchAnswer(0, STEP, 1, 0, (), ())
+    with db.write() as conn:
+        assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
+                                   first_idx=1, estimates=[STEP])
+        conn.execute(insert(SessionBatch), [{"session_id": session_id, "seq": 1, "answer": answer.to_dict(),
+                                             "created_at": utcnow()}])
+        conn.execute(insert(TrackEstimate), sessions._estimate_rows(session_id, 2, 1, [STEP]))
+    direct, core = _stored_batches(db, session_id)
+    assert direct[1] == core[1]  # the answer's JSON, as stored
+    assert type(direct[2]) is type(core[2])
+    if isinstance(core[2], str):  # SQLite: the same text format, a moment apart
+        assert len(direct[2]) == len(core[2]) and direct[2][:10] == core[2][:10]
+    with db.read() as conn:
+        rows = [tuple(r) for r in conn.exec_driver_sql(
+            f"SELECT t, x, y, floor, building, covariance, source, seq FROM track_estimates "
+            f"WHERE session_id = '{session_id}' AND idx > 0 ORDER BY idx")]
+        state = sessions.feed_state(conn, session_id)
+        assert sessions.batch_answer(conn, session_id, 0) == answer
+    assert rows[0][:7] == rows[1][:7] and (rows[0][7], rows[1][7]) == (0, 1)
+    assert state is not None and state.state == {"v": 1} and (state.last_seq, state.track_length) == (0, 2)
+
+
+def test_the_batch_path_joins_its_connections_transaction(db, session_id):
+    """A batch whose transaction fails after ``save_batch`` leaves nothing behind."""
+    answer = BatchAnswer(0, STEP, 1, 0, (), ())
+    with pytest.raises(RuntimeError), db.write() as conn:
+        assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
+                                   first_idx=1, estimates=[STEP])
+        raise RuntimeError("after the write")
+    with db.read() as conn:
+        state = sessions.feed_state(conn, session_id)
+        assert sessions.batch_answer(conn, session_id, 0) is None
+    assert state is not None and (state.last_seq, state.track_length, state.state) == (-1, 1, {"v": 0})
+    assert _stored_batches(db, session_id) == []
+    with db.write() as conn:  # and a stale compare-and-set writes nothing
+        assert not sessions.save_batch(conn, session_id, expected_last_seq=5, state={"v": 2}, answer=answer,
+                                       first_idx=1, estimates=[STEP])
+    assert _stored_batches(db, session_id) == []

@@ -54,6 +54,12 @@ def weighted_vote(D: np.ndarray, labels: np.ndarray, k: int, n_labels: int) -> n
     idx = smallest_columns(D, k)
     d = np.take_along_axis(D, idx, axis=1)
     w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
-    votes = np.zeros((len(D), n_labels))
-    np.add.at(votes, (np.broadcast_to(np.arange(len(D))[:, None], idx.shape), labels[idx]), w)
-    return np.argmax(votes, axis=1)
+    return np.argmax(row_sums(labels[idx], w, n_labels), axis=1)
+
+
+def row_sums(labels: np.ndarray, w: np.ndarray, n_labels: int) -> np.ndarray:
+    """(n, k) labels in 0 … n_labels − 1 and their weights → (n, n_labels): each row's weights
+    summed per label (``np.add.at`` as one ``bincount``, in the same order: several times cheaper)."""
+    n = len(labels)
+    flat = (np.arange(n)[:, None] * n_labels + labels).ravel()
+    return np.bincount(flat, weights=np.ravel(w), minlength=n * n_labels).reshape(n, n_labels)

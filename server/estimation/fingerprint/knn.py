@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import FingerprintModel, TrainingData
-from .distance import SquaredDistance, smallest_columns
+from .distance import SquaredDistance, row_sums, smallest_columns
 
 WEIGHTS = ("uniform", "distance")
 
@@ -45,20 +45,16 @@ class KNNModel(FingerprintModel):
         d2 = self.dist_(Q, Hq)
         if mask is not None:
             d2 = np.where(mask[:, self.row_rp_], d2, np.inf)
-        n = len(d2)
-        rows = np.arange(n)[:, None]
+        rows = np.arange(len(d2))[:, None]
         n_groups = len(self.group_floor_)
         if n_groups > 1:
             fk = self.floor_k if self.floor_k is not None else max(self.k, 10)
             idx = smallest_columns(d2, fk)
             w = self._weights(d2[rows, idx])
-            votes = np.zeros((n, n_groups))
-            np.add.at(votes, (np.broadcast_to(rows, idx.shape), self.row_group_[idx]), w)
-            g = np.argmax(votes, axis=1)
+            g = np.argmax(row_sums(self.row_group_[idx], w, n_groups), axis=1)
             d2 = np.where(self.row_group_[None, :] == g[:, None], d2, np.inf)
         idx = smallest_columns(d2, self.k)
         w = self._weights(d2[rows, idx])
-        scores = np.zeros((n, len(self.rp_xy_)))
-        np.add.at(scores, (np.broadcast_to(rows, idx.shape), self.row_rp_[idx]), w)
+        scores = row_sums(self.row_rp_[idx], w, len(self.rp_xy_))
         with np.errstate(divide="ignore"):
             return np.log(scores)

@@ -67,7 +67,7 @@ from server.estimation.types import Fix
 
 from .base import FingerprintModel, TrainingData
 from .calibration import fit_calibration
-from .distance import nearest_columns, weighted_vote
+from .distance import nearest_columns, row_sums, weighted_vote
 
 DISTANCES = ("sorensen", "euclidean")
 CALIBRATIONS = ("rows", "points", "mixed", None)
@@ -476,13 +476,10 @@ class WKNNModel(FingerprintModel):
         return np.where(self.row_group_[None, :] == g[:, None], D, np.inf)
 
     def _scores(self, D: np.ndarray, k: int, order: np.ndarray | None = None) -> np.ndarray:
-        n = len(D)
         idx = (nearest_columns(D, k) if order is None else order)[:, :k]
         d = np.take_along_axis(D, idx, axis=1)
         w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
-        scores = np.zeros((n, len(self.rp_xy_)))
-        np.add.at(scores, (np.broadcast_to(np.arange(n)[:, None], idx.shape), self.row_rp_[idx]), w)
-        return scores
+        return row_sums(self.row_rp_[idx], w, len(self.rp_xy_))
 
     def coverage(self, rss) -> tuple[np.ndarray, np.ndarray]:
         """(coverage distance, in-coverage flag) per scan — rss as ``predict`` takes it: the
