@@ -51,7 +51,7 @@ class SiteContexts:
     def _load(self, site_id: int) -> SiteContext:
         with self._db.transaction() as s:
             found = store.site_context(s, site_id)
-            active = model_store.serving_model(s, site_id, None)
+            active = model_store.serving_model(s.connection(), site_id, None)
             walkable = plan_store.walkable_areas(s, site_id)
         if found is None:
             raise NotFound(f"site {site_id} does not exist")

@@ -13,6 +13,7 @@ from sqlalchemy import Connection, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import ACTIVATIONS, Activation, Artifact, ModelInfo, ModelSpec, ModelStatus, ServingCandidate
+from server.store._direct import DirectStatement
 from server.store._results import changed
 from server.store.sites import touch_site
 from server.tables import Model, ModelArtifact
@@ -94,16 +95,18 @@ _SERVING = (
     .outerjoin(ModelArtifact, ModelArtifact.model_id == Model.id)
     .where(Model.site_id == bindparam("site_id"))
 )
-_SERVING_ACTIVE = _SERVING.where(Model.active.is_(True))
-_SERVING_CHOSEN = _SERVING.where(Model.id == bindparam("model_id"))
+#: on the driver's cursor (``_direct``): ``locate`` asks for its serving model on every request
+#: its memo cannot answer (PostgreSQL, or any commit since on SQLite, a tracking batch's too)
+_SERVING_ACTIVE = DirectStatement(_SERVING.where(Model.active.is_(True)))
+_SERVING_CHOSEN = DirectStatement(_SERVING.where(Model.id == bindparam("model_id")))
 
 
-def serving_model(s: Session | Connection, site_id: int, model_id: int | None) -> ServingCandidate | None:
+def serving_model(conn: Connection, site_id: int, model_id: int | None) -> ServingCandidate | None:
     """``model_id`` if it is a model of the site, else (``model_id`` None) the site's active model; ready or not."""
     if model_id is None:
-        row = s.execute(_SERVING_ACTIVE, {"site_id": site_id}).first()
+        row = _SERVING_ACTIVE.first(conn, {"site_id": site_id})
     else:
-        row = s.execute(_SERVING_CHOSEN, {"site_id": site_id, "model_id": model_id}).first()
+        row = _SERVING_CHOSEN.first(conn, {"site_id": site_id, "model_id": model_id})
     return None if row is None else ServingCandidate(row[0], row[1], cast(ModelStatus, row[2]), row[3])
 
 

@@ -121,7 +121,7 @@ def test_a_heartbeat_keeps_a_live_job_from_being_claimed_again(db, site_id):
 
 def test_a_trained_model_serves_with_its_artifact(db, site_id):
     with db.transaction() as s:
-        assert models.serving_model(s, site_id, None) is None
+        assert models.serving_model(s.connection(), site_id, None) is None
         queued = models.add_model(s, site_id, KNN).id
     with db.read() as conn:
         assert models.serving_model(conn, site_id, queued) == ServingCandidate(queued, "knn", "queued", None)
@@ -129,10 +129,10 @@ def test_a_trained_model_serves_with_its_artifact(db, site_id):
     with db.transaction() as s:
         info = models.get_model(s, site_id, model_id)
         assert info is not None and info.status == "ready" and info.trained_on == 12 and info.metrics == {"mean_error_m": 1.5}
-        chosen = models.serving_model(s, site_id, model_id)
+        chosen = models.serving_model(s.connection(), site_id, model_id)
         assert chosen is not None and chosen.ready() == ServingModel(model_id, "knn", "a" * 64)
-        assert models.serving_model(s, site_id, None) is None  # trained, not yet active
-        assert models.serving_model(s, site_id + 1000, model_id) is None
+        assert models.serving_model(s.connection(), site_id, None) is None  # trained, not yet active
+        assert models.serving_model(s.connection(), site_id + 1000, model_id) is None
         assert models.model_artifact(s, model_id) == Artifact(model_id, "a" * 64, b"\x00blob")
         assert models.model_artifact(s, queued) is None
 
@@ -153,8 +153,8 @@ def test_activation_keeps_one_active_model_per_site_and_renews_the_revision(db, 
     with db.transaction() as s:
         assert models.has_active_model(s, site_id)
         assert [m.active for m in models.list_models(s, site_id)] == [False, True]
-        active = models.serving_model(s, site_id, None)
+        active = models.serving_model(s.connection(), site_id, None)
         assert active is not None and active.model_id == second
-        assert models.serving_model(s, other_site, None) == ServingCandidate(other, "knn", "ready", "f" * 64)
+        assert models.serving_model(s.connection(), other_site, None) == ServingCandidate(other, "knn", "ready", "f" * 64)
     with pytest.raises(IntegrityError), db.transaction() as s:  # the database itself allows one
         s.execute(update(Model).where(Model.id == first).values(active=True))
