@@ -88,11 +88,11 @@ class Authenticator:
         return Principal(scope, digest) if scope is not None else None
 
     def stored(self, key: str) -> Principal | None:
-        """A key created from the CLI and not revoked (one indexed query)."""
+        """A key created from the CLI and not revoked (one indexed query, on a read connection)."""
         digest = hash_key(key)
-        with self._db.transaction() as s:
-            found = store.find_api_key(s, digest)
-            return Principal(found.scope, digest) if found is not None else None
+        with self._db.read() as conn:
+            scope = store.key_scope(conn, digest)
+        return Principal(scope, digest) if scope is not None else None
 
 
 def create_key(db: Database, name: str, scope: Scope) -> tuple[int, str]:

@@ -5,10 +5,11 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import cast
 
-from sqlalchemy import select, update
+from sqlalchemy import Connection, bindparam, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import ApiKeyInfo, Scope
+from server.store._direct import DirectStatement
 from server.store._results import changed
 from server.tables import ApiKey
 
@@ -27,10 +28,15 @@ def add_api_key(s: Session, name: str, scope: Scope, key_hash: str) -> ApiKeyInf
     return _info(key)
 
 
-def find_api_key(s: Session, key_hash: str) -> ApiKeyInfo | None:
-    """The key with this hash, unless it was revoked."""
-    key = s.scalar(select(ApiKey).where(ApiKey.key_hash == key_hash, ApiKey.revoked_at.is_(None)))
-    return None if key is None else _info(key)
+#: on the driver's cursor (``_direct``): a stored key is looked up on every request that sends one
+_KEY_SCOPE = DirectStatement(select(ApiKey.scope).where(ApiKey.key_hash == bindparam("key_hash"),
+                                                       ApiKey.revoked_at.is_(None)))
+
+
+def key_scope(conn: Connection, key_hash: str) -> Scope | None:
+    """The scope of the key with this hash, unless it was revoked."""
+    row = _KEY_SCOPE.first(conn, {"key_hash": key_hash})
+    return None if row is None else cast(Scope, row[0])
 
 
 def list_api_keys(s: Session) -> list[ApiKeyInfo]:
