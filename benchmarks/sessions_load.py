@@ -43,6 +43,8 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.http_load import client, closed_loop, cpu_seconds, database_cpu_seconds  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
+from server.auth import create_key  # noqa: E402
+from server.db import Database  # noqa: E402
 from tests.helpers.synthetic import make_site  # noqa: E402
 
 ADMIN, DEVICE = "bench-admin", "bench-device"
@@ -123,12 +125,12 @@ async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, second
     return sid, ok
 
 
-async def capacities(base: str, server_pid: int, site_id: int, synth, filter: str, requests: int = 3000,
-                     concurrency: int = 64) -> dict:
+async def capacities(base: str, server_pid: int, site_id: int, synth, filter: str, device_key: str,
+                     requests: int = 3000, concurrency: int = 64) -> dict:
     """Closed loop, same client and concurrency: ``GET /healthz`` (one ``SELECT 1``), then
     batches from ``concurrency`` phones each posting its next batch once the last is answered.
     Each with the server's CPU time per request."""
-    async with client(base, DEVICE, concurrency) as http:
+    async with client(base, device_key, concurrency) as http:
         await closed_loop(http, lambda i: ("GET", "/healthz", None), 200, concurrency)  # warm up
         cpu0 = cpu_seconds(server_pid)
         elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
@@ -156,8 +158,8 @@ async def capacities(base: str, server_pid: int, site_id: int, synth, filter: st
             "db_cpu_ms": db_ms, "sessions": [(sid, per_phone) for sid in sessions]}
 
 
-async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str):
-    async with client(base, DEVICE, phones) as http:
+async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str, device_key: str):
+    async with client(base, device_key, phones) as http:
         loop = asyncio.get_running_loop()
         t0 = loop.time() + 2.0
         latencies, failures = [], []
@@ -194,6 +196,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="server processes")
     parser.add_argument("--database-url", help="default: a new SQLite file")
     parser.add_argument("--port", type=int, default=8793)
+    parser.add_argument("--stored-key", action="store_true",
+                        help="phones use a key created as `python -m server keys create` makes one (looked up in "
+                             "the database on every request) instead of one from LOCALIZER_DEVICE_KEYS")
     args = parser.parse_args()
 
     synth = make_site(nx=4, ny=3, spacing_m=4.0, floors=(0, 1), seed=2)
@@ -204,9 +209,14 @@ def main() -> None:
         try:
             base = f"http://127.0.0.1:{args.port}"
             site_id = prepare_site(base, synth)
-            cap = asyncio.run(capacities(base, server.pid, site_id, synth, args.filter))
+            device_key = DEVICE
+            if args.stored_key:
+                db = Database(url)
+                device_key = create_key(db, "bench phones", "device")[1]
+                db.dispose()
+            cap = asyncio.run(capacities(base, server.pid, site_id, synth, args.filter, device_key))
             sessions, lat, failures, elapsed = asyncio.run(
-                run(base, site_id, synth, args.phones, args.seconds, args.filter))
+                run(base, site_id, synth, args.phones, args.seconds, args.filter, device_key))
         finally:
             stop_server(server)
         lat_ms = np.array(lat) * 1000
@@ -227,7 +237,8 @@ def main() -> None:
                 print(f"per core: {1000.0 / total:.0f} phones at one batch a second (server + database CPU "
                       f"{total:.2f} ms per batch); 1,000 phones need {total:.1f} cores")
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
-              f"{url.split(':')[0]}): {n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
+              f"{url.split(':')[0]}{', stored key' if args.stored_key else ''}): "
+              f"{n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
               f"(offered {args.phones}/s)")
         if n:
             print(f"batch latency ms: p50 {np.percentile(lat_ms, 50):.1f}  p90 {np.percentile(lat_ms, 90):.1f}  "
