@@ -144,6 +144,7 @@ def test_a_filter_restored_after_every_input_continues_exactly(name):
         if isinstance(e, Step) and e.length_m == 10.0:  # every particle would leave: redrawn inside
             assert area.contains(a.particles[:, :2]).all()
         np.testing.assert_array_equal(_through_json(a).particles, a.particles)
+        assert a._grid is not None and packed.on_grid(a.particles, *a._grid).all()  # as stored, not rounded again
     assert kinds == {True, False}  # stored with uniform and with other weights
 
 

@@ -182,11 +182,16 @@ class ParticleFilterXYTracker(Tracker):
 
     def _settle(self, moved: np.ndarray, step_m: float) -> None:
         """Move the particles to ``moved`` (same columns), killing those whose move crosses a
-        wall or ends outside the walkable area; the rule when all would die is the module's."""
-        self._move(moved, step_m)
-        self._quantize()
+        wall or ends outside the walkable area; the rule when all would die is the module's.
+        The moved particles are on their grid already (rounded before the walls judged them; a
+        resampling only picks rows of them), so only a redraw's need rounding again."""
+        if self._move(moved, step_m):
+            self._quantize()
+        else:
+            self.weights = weights_as_stored(self.weights)
 
-    def _move(self, moved: np.ndarray, step_m: float) -> None:
+    def _move(self, moved: np.ndarray, step_m: float) -> bool:
+        """``_settle``'s move; True when the particles were redrawn."""
         old = self.particles
         moved = self._round(moved, refit=True)  # walls judge the positions the filter keeps
         dead = self._crosses(old[:, :2], moved[:, :2])
@@ -194,17 +199,19 @@ class ParticleFilterXYTracker(Tracker):
             dead |= ~self.walkable.contains(moved[:, :2])
         self.particles = moved
         if not dead.any():
-            return
+            return False
         if not dead.all():
             self.weights[dead] = 0.0
             self.weights /= self.weights.sum()
             self._resample()
-            return
+            return False
         if self.walkable is not None:
             redrawn = self._redraw(old, step_m)
             if redrawn is not None:
                 self.particles = redrawn
                 self.weights = np.full(len(redrawn), 1.0 / len(redrawn))
+                return True
+        return False
 
     def _redraw(self, old: np.ndarray, step_m: float, tries: int = 4) -> np.ndarray | None:
         """n particles around the weighted mean of ``old`` (spread its covariance + step_m²·I),
@@ -238,19 +245,20 @@ class ParticleFilterXYTracker(Tracker):
         self.weights = w / w.sum()
         if effective_sample_size(self.weights) < self.params["resample_threshold"] * len(self.weights):
             self._resample()
-        self._quantize()
+        self.weights = weights_as_stored(self.weights)  # (the particles did not move)
         return True
 
     def _resample(self) -> None:
-        """Systematic resampling to the count the cloud needs (KLD-sampling)."""
+        """Systematic resampling to the count the cloud needs (KLD-sampling; a fixed count when
+        ``min_particles`` is ``n_particles``). The particles picked are on their grid already."""
         p = self.params
-        # the weighted cloud's bins, approximated by the particles that carry weight
-        n = kld_count(self.particles[self.weights > 0, :2], p["kld_bin_m"], p["kld_epsilon"],
-                      p["min_particles"], p["n_particles"])
+        n = p["n_particles"]
+        if p["min_particles"] < n:  # the weighted cloud's bins, approximated by the particles that carry weight
+            n = kld_count(self.particles[self.weights > 0, :2], p["kld_bin_m"], p["kld_epsilon"],
+                          p["min_particles"], n)
         idx = systematic_resample(self.weights, float(self.rng.random()), n)
         self.particles = self.particles[idx]
-        self.weights = np.full(n, 1.0 / n)
-        self._quantize()
+        self.weights = weights_as_stored(np.full(n, 1.0 / n))
 
     def _quantize(self) -> None:
         """Particles and weights as stored (``packed``: a byte each): what ``to_dict`` stores
