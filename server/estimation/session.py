@@ -66,6 +66,17 @@ GATE_D2 = 13.82
 #: (weighted by the widened covariance) instead of one fix being taken blindly
 MAX_GATED_IN_A_ROW = 3
 INFLATE_FACTOR = 2.0
+#: a session started on a fix (no initial position) starts no wider than this (m, per axis):
+#: the model's covariance is its posterior's spread, far candidates included (σ ≈ 40 m on the
+#: MSFT walks, whose first fix is 14 m off in mean), and a cloud that wide, clipped to the
+#: walkable area, starts where walkable space is rather than at the fix (chosen on MSFT folds
+#: 0–1 among 6, 10, 15, 20 m and ×0.05–0.25 of the fix's covariance; docs/msft-evaluation.md)
+COLD_START_MAX_STD_M = 10.0
+#: ... and its fixes' scale (``FixNoiseScale``) starts from this prior instead of 1: it has no
+#: position but its fixes to learn their scatter from, while a wide model covariance makes it
+#: follow them slowly (chosen on MSFT folds 0–1 among 0.1, 0.25, 0.5; the known-start sessions
+#: keep the prior 1)
+COLD_FIX_SCALE_PRIOR = 0.25
 #: ``FloorTracker`` follows one integer per floor: (building, level) packed as
 #: building · FLOOR_KEY + level (levels lie within ±FLOOR_KEY/2), so a state stored before
 #: buildings (building 0: the level itself) reads unchanged
@@ -244,7 +255,9 @@ class SessionEstimator:
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
-            return self.start(fix.mean, fix.covariance, fix.floor, walls, scan.t, "scan", fix.building), None
+            self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
+            return self.start(fix.mean, cold_start_cov(fix.covariance), fix.floor, walls, scan.t, "scan",
+                              fix.building), None
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
@@ -341,6 +354,13 @@ class SessionEstimator:
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         obj.fix_noise = FixNoiseScale.from_list(d.get("fix_noise"))  # absent from older states
         return obj
+
+
+def cold_start_cov(cov, max_std_m: float = COLD_START_MAX_STD_M) -> np.ndarray:
+    """A first fix's covariance for starting a session: its eigenvalues capped at ``max_std_m``²
+    (the axes kept), so a fix whose model spreads it over the whole floor starts at the fix."""
+    w, v = np.linalg.eigh(fix_cov(cov))
+    return fix_cov((v * np.minimum(w, max_std_m**2)) @ v.T)
 
 
 def time_order(steps: list[Step], scans: list[Scan]) -> list[tuple[str, int, Step | Scan]]:
