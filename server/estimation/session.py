@@ -33,7 +33,7 @@ from server.estimation.tracking import (
     make_tracker,
     tracker_from_dict,
 )
-from server.estimation.tracking.base import Tracker, fix_cov
+from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
 from server.estimation.types import (
@@ -148,7 +148,10 @@ class SessionEstimator:
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        return Area((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2)
+        radius = max(x1 - x0, y1 - y0) / 2
+        if np.sqrt(np.linalg.eigvalsh(self.tracker.covariance)[-1]) > radius:
+            return None  # not localised to within the box (a cold start): it would keep every fix near a wrong start
+        return Area((x0 + x1) / 2, (y0 + y1) / 2, radius)
 
     # -- a whole batch ----------------------------------------------------------------
     def apply_batch(
@@ -255,9 +258,11 @@ class SessionEstimator:
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
-            self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
-            return self.start(fix.mean, cold_start_cov(fix.covariance), fix.floor, walls, scan.t, "scan",
-                              fix.building), None
+            cov = fix.covariance
+            if TRACKERS[self.filter].augmented:  # (the seed forms take the fix as the model gives it)
+                self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
+                cov = cold_start_cov(cov)
+            return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building), None
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
