@@ -266,7 +266,7 @@ class SessionEstimator:
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
             cov = fix.covariance
-            if TRACKERS[self.filter].augmented:  # (the seed forms take the fix as the model gives it)
+            if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
             return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building), None
