@@ -33,7 +33,7 @@ from server.estimation.tracking import (
     make_tracker,
     tracker_from_dict,
 )
-from server.estimation.tracking.base import Tracker, fix_cov
+from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
 from server.estimation.types import (
@@ -66,6 +66,20 @@ GATE_D2 = 13.82
 #: (weighted by the widened covariance) instead of one fix being taken blindly
 MAX_GATED_IN_A_ROW = 3
 INFLATE_FACTOR = 2.0
+#: a session started on a fix (no initial position) starts no wider than this (m, per axis):
+#: the model's covariance is its posterior's spread, far candidates included (σ ≈ 40 m on the
+#: MSFT walks, whose first fix is 14 m off in mean), and a cloud that wide, clipped to the
+#: walkable area, starts where walkable space is rather than at the fix (chosen on MSFT folds
+#: 0–1 among 6, 8, 10, 12, 15, 20 m and ×0.05–0.25 of the fix's covariance; pf cold 13.1 → 8.8 m,
+#: skpf 10.2 → 9.3, ekf 9.7 → 9.2 with the prior below; 15 rather than 10 m, which did as well
+#: there, because a wrong first fix then weighs less against the later ones: the start's
+#: variance is 0.56× a later fix's, not 0.25×; docs/msft-evaluation.md, "Cold start")
+COLD_START_MAX_STD_M = 15.0
+#: ... and its fixes' scale (``FixNoiseScale``) starts from this prior instead of 1: it has no
+#: position but its fixes to learn their scatter from, while a wide model covariance makes it
+#: follow them slowly (chosen on MSFT folds 0–1 among 0.15, 0.25, 0.35, 0.5; the known-start
+#: sessions keep the prior 1). Both apply to the trackers that learn their fix noise only.
+COLD_FIX_SCALE_PRIOR = 0.25
 #: ``FloorTracker`` follows one integer per floor: (building, level) packed as
 #: building · FLOOR_KEY + level (levels lie within ±FLOOR_KEY/2), so a state stored before
 #: buildings (building 0: the level itself) reads unchanged
@@ -132,12 +146,19 @@ class SessionEstimator:
         return self.estimate
 
     def search_area(self) -> Area | None:
-        """Where the tracker allows the fingerprint model to look (None: anywhere)."""
-        box = self.tracker.search_region() if self.tracker is not None else None
+        """Where the tracker allows the fingerprint model to look (None: anywhere). Not before
+        the tracker is localised to within its box (its largest position std at most the box's
+        half-width): the box around a wrong cold start would keep every later fix near it."""
+        if self.tracker is None:
+            return None
+        box = self.tracker.search_region()
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        return Area((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2)
+        radius = max(x1 - x0, y1 - y0) / 2
+        if np.sqrt(np.linalg.eigvalsh(self.tracker.covariance)[-1]) > radius:
+            return None
+        return Area((x0 + x1) / 2, (y0 + y1) / 2, radius)
 
     # -- a whole batch ----------------------------------------------------------------
     def apply_batch(
@@ -244,7 +265,11 @@ class SessionEstimator:
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
-            return self.start(fix.mean, fix.covariance, fix.floor, walls, scan.t, "scan", fix.building), None
+            cov = fix.covariance
+            if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
+                self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
+                cov = cold_start_cov(cov)
+            return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building), None
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
@@ -341,6 +366,13 @@ class SessionEstimator:
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         obj.fix_noise = FixNoiseScale.from_list(d.get("fix_noise"))  # absent from older states
         return obj
+
+
+def cold_start_cov(cov, max_std_m: float = COLD_START_MAX_STD_M) -> np.ndarray:
+    """A first fix's covariance for starting a session: its eigenvalues capped at ``max_std_m``²
+    (the axes kept), so a fix whose model spreads it over the whole floor starts at the fix."""
+    w, v = np.linalg.eigh(fix_cov(cov))
+    return fix_cov((v * np.minimum(w, max_std_m**2)) @ v.T)
 
 
 def time_order(steps: list[Step], scans: list[Scan]) -> list[tuple[str, int, Step | Scan]]:

@@ -58,14 +58,17 @@ def student_t_factor(d2: float) -> float:
 
 @dataclass
 class FixNoiseScale:
-    """Running weighted mean of the scale samples; ``total`` and ``weight`` exclude the prior."""
+    """Running weighted mean of the scale samples; ``total`` and ``weight`` exclude the prior,
+    ``PRIOR_WEIGHT`` fixes at ``prior`` (1: the model's own calibration; a session started on
+    a fix starts lower, ``session.COLD_FIX_SCALE_PRIOR``)."""
 
     total: float = 0.0
     weight: float = 0.0
+    prior: float = 1.0
 
     @property
     def scale(self) -> float:
-        s = (PRIOR_WEIGHT + self.total) / (PRIOR_WEIGHT + self.weight)
+        s = (PRIOR_WEIGHT * self.prior + self.total) / (PRIOR_WEIGHT + self.weight)
         return float(min(max(s, SCALE_MIN), SCALE_MAX))
 
     def observe(self, innovation: np.ndarray, P: np.ndarray, R: np.ndarray) -> None:
@@ -80,9 +83,12 @@ class FixNoiseScale:
         self.weight = keep * self.weight + 1.0
 
     def to_list(self) -> list[float]:
-        return [self.total, self.weight]
+        """[total, weight], and the prior when it is not 1 (states stored before it had none)."""
+        return [self.total, self.weight] if self.prior == 1.0 else [self.total, self.weight, self.prior]
 
     @classmethod
     def from_list(cls, data: list[float] | None) -> FixNoiseScale:
-        """A stored pair; None (a state stored before this existed) starts at the prior."""
-        return cls() if data is None else cls(float(data[0]), float(data[1]))
+        """A stored list; None (a state stored before this existed) starts at the prior."""
+        if data is None:
+            return cls()
+        return cls(float(data[0]), float(data[1]), float(data[2]) if len(data) > 2 else 1.0)

@@ -1,0 +1,128 @@
+"""A session opened without a position starts on its first fix (``SessionEstimator.scan``). A
+fingerprint model's covariance can span the floor (its posterior's far candidates: σ ≈ 40 m on
+the MSFT walks, whose fixes are ≈ 14 m off): the self-calibrating trackers then start no wider
+than ``COLD_START_MAX_STD_M`` and trust their fixes from a lower prior scale, and a search box
+waits until the tracker is localised within it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from server.estimation.floorplan import Walkable
+from server.estimation.session import (
+    COLD_FIX_SCALE_PRIOR,
+    COLD_START_MAX_STD_M,
+    SessionEstimator,
+    cold_start_cov,
+)
+from server.estimation.tracking.fixnoise import FixNoiseScale
+from server.estimation.types import Fix, Scan, SiteMap, Step
+
+#: 100 × 10 m corridor along x
+CORRIDOR = SiteMap(walkable={(0, 0): Walkable([[(0, 0), (100, 0), (100, 10), (0, 10)]])})
+
+
+class Table:
+    """Fixes by scan time."""
+
+    def __init__(self, fixes: dict[float, Fix]):
+        self.fixes = fixes
+
+    def fix(self, scan, near):
+        return self.fixes[scan.t]
+
+
+def corridor_walk(seed: int, sigma_model_m: float = 40.0):
+    """30 s east along the corridor from (10, 5): a step every 0.5 s, a fix every 2 s, the
+    fixes 3 m off (σ) while the model says ``sigma_model_m``. Returns the inputs and the truth."""
+    rng = np.random.default_rng(seed)
+    steps, scans, fixes, truth = [], [], {}, {}
+    for k in range(60):
+        t = 0.5 * (k + 1)
+        steps.append(Step(t, 0.7, 90.0, length_std_m=0.05, heading_std_deg=3.0))
+        truth[t] = (10.0 + 0.7 * (k + 1), 5.0)
+        if k % 4 == 0:
+            ts, x = (0.1, 10.0) if k == 0 else (t + 0.1, 10.0 + 0.7 * (k + 1))
+            off = np.zeros(2) if k == 0 else rng.normal(0.0, 3.0, 2)
+            fixes[ts] = Fix(x + off[0], 5.0 + off[1], 0, np.eye(2) * sigma_model_m**2)
+            scans.append(Scan(ts, {}))
+            truth[ts] = (x, 5.0)
+    return steps, scans, Table(fixes), truth
+
+
+def test_the_start_covariance_is_capped_along_its_own_axes():
+    c, s = np.cos(0.3), np.sin(0.3)
+    axes = np.array([[c, -s], [s, c]])
+    wide = axes @ np.diag([40.0**2, 4.0**2]) @ axes.T
+    capped = cold_start_cov(wide)
+    w, v = np.linalg.eigh(capped)
+    assert w == pytest.approx([4.0**2, COLD_START_MAX_STD_M**2])
+    assert abs(v[:, 1] @ axes[:, 0]) == pytest.approx(1.0)  # the long axis kept
+    small = np.array([[9.0, 1.0], [1.0, 4.0]])
+    assert np.allclose(cold_start_cov(small), small)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_pf_started_on_a_wide_fix_in_a_corridor_starts_at_the_fix(seed):
+    """Without the cap the start cloud (σ 40 m) clipped to the corridor has its mean ≈ 24 m
+    east of the fix after the first step, and the σ 40 m fixes pull it back slowly: the first
+    10 s were 12.5–14.8 m off on these seeds, 3.6–4.3 m with the cap."""
+    steps, scans, fixes, truth = corridor_walk(seed)
+    est = SessionEstimator("pf", seed=seed)
+    track = []
+    for k in range(0, 60, 4):  # 2 s batches, the state stored and loaded between them
+        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+        batch = [s for s in scans if 0.5 * k < s.t <= 0.5 * (k + 4)]
+        track += est.apply_batch(steps[k:k + 4], batch, fixes, CORRIDOR).estimates
+    errors = [np.hypot(e.x - truth[e.t][0], e.y - truth[e.t][1]) for e in track]
+    assert np.mean(errors[:20]) < 6.0
+    assert np.mean(errors[20:]) < 4.0
+
+
+@pytest.mark.parametrize("name", ["pf", "skpf", "ekf", "ukf"])
+def test_a_self_calibrating_session_started_on_a_fix_starts_narrower_and_trusts_its_fixes_more(name):
+    est = SessionEstimator(name, seed=1)
+    fix = Fix(10.0, 5.0, 0, np.eye(2) * 40.0**2)
+    est.scan(Scan(0.0, {}), fix, SiteMap())
+    assert est.tracker is not None
+    assert np.sqrt(np.linalg.eigvalsh(est.tracker.covariance)[-1]) < 1.3 * COLD_START_MAX_STD_M
+    assert est.fix_noise.scale == pytest.approx(COLD_FIX_SCALE_PRIOR)
+    resumed = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+    assert resumed.fix_noise.scale == pytest.approx(COLD_FIX_SCALE_PRIOR)
+    known = SessionEstimator(name, seed=1)
+    known.start([10.0, 5.0], None, 0, [], None, "init")
+    assert known.fix_noise.scale == 1.0
+
+
+@pytest.mark.parametrize("name", ["kf", "fkf", "pf-xy", "skpf-xy"])
+def test_a_seed_form_starts_on_the_fix_as_the_model_gives_it(name):
+    est = SessionEstimator(name, seed=1)
+    est.scan(Scan(0.0, {}), Fix(10.0, 5.0, 0, np.eye(2) * 40.0**2), SiteMap())
+    assert est.tracker is not None
+    assert np.sqrt(np.linalg.eigvalsh(est.tracker.covariance)[-1]) > 30.0
+    assert est.fix_noise.scale == 1.0
+
+
+def test_the_search_box_waits_until_the_tracker_is_localised_within_it():
+    """The fkf's ±9 m box around a cold start 40 m wide would keep every later fix near a
+    possibly wrong first one (MSFT folds 0–1: 11.2 m cold with the box from the start, 10.2 m
+    without)."""
+    cold = SessionEstimator("fkf", seed=1)
+    cold.scan(Scan(0.0, {}), Fix(10.0, 5.0, 0, np.eye(2) * 40.0**2), SiteMap())
+    assert cold.search_area() is None
+    known = SessionEstimator("fkf", seed=1)
+    known.start([10.0, 5.0], None, 0, [], None, "init")
+    area = known.search_area()
+    assert area is not None and (area.x, area.y) == pytest.approx((10.0, 5.0))
+
+
+def test_the_fix_noise_prior_round_trips_and_an_older_pair_reads_at_prior_one():
+    s = FixNoiseScale(prior=0.25)
+    assert s.scale == pytest.approx(0.25)
+    s.observe(np.array([3.0, 0.0]), np.eye(2), np.eye(2) * 4.0)
+    assert FixNoiseScale.from_list(json.loads(json.dumps(s.to_list()))) == s
+    assert FixNoiseScale.from_list([0.0, 0.0]).prior == 1.0
+    assert FixNoiseScale().to_list() == [0.0, 0.0]  # the stored form of a known-start session is unchanged
