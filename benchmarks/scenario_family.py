@@ -333,7 +333,8 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=12, help="scenarios")
     ap.add_argument("--first", type=int, default=0, help="index of the first scenario")
     ap.add_argument("--filters", default=",".join(FILTERS))
-    ap.add_argument("--fixes", choices=("knn", "gaussian", "both"), default="both")
+    ap.add_argument("--fixes", choices=("knn", "gaussian", "both"), default="both",
+                    help="knn: the fixes of a fingerprint model (--algorithm), gaussian: truth plus Gaussian noise")
     ap.add_argument("--cov-scale", type=float, default=1.0,
                     help="multiply the model's (already calibrated) fix covariance by this (default 1: as served)")
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
@@ -355,7 +356,8 @@ def main() -> int:
         t0 = time.perf_counter()
         results = [run_scenario(s, filters, kind, cov_scale) for s in scenarios]
         rows = table(results, ["pdr-only", "fingerprint-only", *filters])
-        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {kind} fixes "
+        what = f"{a.algorithm} model" if kind == "knn" else kind  # ("knn": the model's fixes, of --algorithm)
+        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {what} fixes "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
         print()
