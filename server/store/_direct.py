@@ -6,7 +6,8 @@ in-process, that overhead was a fifth of a batch's CPU. A ``DirectStatement`` is
 once per dialect *by SQLAlchemy* (its SQL, its parameter style and PostgreSQL casts, the
 column types' own bind and result processors, found once), then executed on the DBAPI
 cursor of the same connection, inside whatever transaction that connection is in — so
-what is stored and read back is exactly what Core would store and read.
+what is stored and read back is exactly what Core would store and read, and a driver error
+is raised as Core would raise it (the server's 503 for a locked database depends on that).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any, cast
 
 from sqlalchemy import Connection
 from sqlalchemy.engine import Dialect
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.sql import ClauseElement
 from sqlalchemy.sql.compiler import SQLCompiler
 
@@ -71,33 +73,53 @@ class DirectStatement:
             values[name] = proc(values[name])
         return values if c.order is None else [values[name] for name in c.order]
 
+    def _run(self, conn: Connection, args: Any, action: Callable[[Any], Any]) -> Any:
+        """``action(cursor)`` on a cursor of ``conn``'s driver connection. A driver error is raised
+        as SQLAlchemy raises it (``OperationalError`` for a locked or unreachable database, which
+        the server answers 503, ``IntegrityError``, …), and a connection the error shows lost is
+        invalidated, as Core does for its own statements."""
+        dialect = conn.dialect
+        driver = conn.connection.driver_connection
+        dbapi_error = dialect.loaded_dbapi.Error
+        try:
+            cursor = driver.cursor()  # type: ignore[union-attr]
+            try:
+                return action(cursor)
+            finally:
+                cursor.close()
+        except dbapi_error as exc:
+            lost = dialect.is_disconnect(exc, driver, None)
+            if lost:
+                conn.invalidate(exc)
+            raise DBAPIError.instance(self._compiled(dialect).sql, args, exc, dbapi_error,
+                                      connection_invalidated=lost, dialect=dialect) from exc
+
     def execute(self, conn: Connection, params: Mapping[str, Any]) -> int:
         """Run it once; the number of rows it changed (an UPDATE's, an INSERT's)."""
         c = self._compiled(conn.dialect)
-        cursor = conn.connection.driver_connection.cursor()  # type: ignore[union-attr]
-        try:
-            cursor.execute(c.sql, self._args(c, params))
+        args = self._args(c, params)
+
+        def run(cursor: Any) -> int:
+            cursor.execute(c.sql, args)
             return int(cursor.rowcount)
-        finally:
-            cursor.close()
+
+        return self._run(conn, args, run)
 
     def execute_many(self, conn: Connection, rows: Sequence[Mapping[str, Any]]) -> None:
         c = self._compiled(conn.dialect)
-        cursor = conn.connection.driver_connection.cursor()  # type: ignore[union-attr]
-        try:
-            cursor.executemany(c.sql, [self._args(c, row) for row in rows])
-        finally:
-            cursor.close()
+        args = [self._args(c, row) for row in rows]
+        self._run(conn, args, lambda cursor: cursor.executemany(c.sql, args))
 
     def first(self, conn: Connection, params: Mapping[str, Any]) -> tuple[Any, ...] | None:
         """The first row of a SELECT, its values through the columns' result processors."""
         c = self._compiled(conn.dialect)
-        cursor = conn.connection.driver_connection.cursor()  # type: ignore[union-attr]
-        try:
-            cursor.execute(c.sql, self._args(c, params))
-            row = cursor.fetchone()
-        finally:
-            cursor.close()
+        args = self._args(c, params)
+
+        def run(cursor: Any) -> Any:
+            cursor.execute(c.sql, args)
+            return cursor.fetchone()
+
+        row = self._run(conn, args, run)
         if row is None:
             return None
         return tuple(v if proc is None or v is None else proc(v) for v, proc in zip(row, c.results, strict=True))

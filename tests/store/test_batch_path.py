@@ -5,6 +5,7 @@ and connections the server dropped found before use (what ``pool_pre_ping`` did,
 from __future__ import annotations
 
 import time
+from datetime import UTC, datetime
 
 import pytest
 from sqlalchemy import text
@@ -96,6 +97,7 @@ def test_a_read_on_sqlite_is_as_before(db, session_id):
 
 
 STEP = Estimate(0.5, 1.5, 2.0, 0, ((1.2, 0.1), (0.1, 1.3)), "step")
+START_TIME = datetime(2026, 12, 2, tzinfo=UTC)
 
 
 def _stored_batches(db, session_id: str) -> list[tuple]:
@@ -149,4 +151,46 @@ def test_the_batch_path_joins_its_connections_transaction(db, session_id):
     with db.write() as conn:  # and a stale compare-and-set writes nothing
         assert not sessions.save_batch(conn, session_id, expected_last_seq=5, state={"v": 2}, answer=answer,
                                        first_idx=1, estimates=[STEP])
+    assert _stored_batches(db, session_id) == []
+
+
+def test_a_driver_error_is_raised_as_sqlalchemy_raises_it(db, session_id):
+    """The server maps SQLAlchemy's errors (a locked database: 503); the batch path's statements
+    run on the driver's cursor but raise the same classes."""
+    from sqlalchemy.exc import IntegrityError
+
+    answer = BatchAnswer(0, STEP, 1, 0, (), ())
+    with db.write() as conn:
+        assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
+                                   first_idx=1, estimates=[STEP])
+    with pytest.raises(IntegrityError), db.write() as conn:  # the same seq stored twice
+        sessions._INSERT_ANSWER.execute(conn, {"session_id": session_id, "seq": 0, "answer": {},
+                                               "created_at": START_TIME})
+
+
+def test_a_locked_sqlite_database_is_an_operational_error(db, session_id):
+    """Another program holding SQLite's write lock: the compare-and-set UPDATE waits its busy
+    timeout and fails with SQLAlchemy's ``OperationalError`` (answered 503), writing nothing."""
+    import sqlite3
+
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import OperationalError
+
+    from server.db import Database
+
+    if not db.embedded:
+        pytest.skip("SQLite only")
+    path = make_url(db.url).database
+    impatient = Database(db.url, busy_timeout_s=0.05)
+    blocker = sqlite3.connect(path, isolation_level=None)
+    try:
+        blocker.execute("BEGIN IMMEDIATE")
+        answer = BatchAnswer(0, STEP, 1, 0, (), ())
+        with pytest.raises(OperationalError, match="locked"), impatient.write() as conn:
+            sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
+                                first_idx=1, estimates=[STEP])
+    finally:
+        blocker.execute("ROLLBACK")
+        blocker.close()
+        impatient.dispose()
     assert _stored_batches(db, session_id) == []
