@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
+from weakref import WeakKeyDictionary
 
 from sqlalchemy import Connection
 from sqlalchemy.engine import Dialect
@@ -43,7 +44,8 @@ class DirectStatement:
 
     def __init__(self, statement: ClauseElement):
         self.statement = statement
-        self._compiled_for: dict[Dialect, _Compiled] = {}
+        #: per engine's dialect, for as long as the engine lives (tests make many)
+        self._compiled_for: WeakKeyDictionary[Dialect, _Compiled] = WeakKeyDictionary()
 
     def _compiled(self, dialect: Dialect) -> _Compiled:
         compiled = self._compiled_for.get(dialect)
