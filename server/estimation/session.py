@@ -68,7 +68,8 @@ MAX_GATED_IN_A_ROW = 3
 INFLATE_FACTOR = 2.0
 #: a session started on a fix (no initial position) starts no wider than this (m, per axis):
 #: the model's covariance is its posterior's spread, far candidates included (σ ≈ 40 m on the
-#: MSFT walks, whose first fix is 14 m off in mean), and a cloud that wide, clipped to the
+#: MSFT walks, whose first fix is 14 m off in mean, when this was chosen; ≈ 13 m since the
+#: training step calibrates on every walk held out once), and a cloud that wide, clipped to the
 #: walkable area, starts where walkable space is rather than at the fix (chosen on MSFT folds
 #: 0–1 among 6, 8, 10, 12, 15, 20 m and ×0.05–0.25 of the fix's covariance; pf cold 13.1 → 8.8 m,
 #: skpf 10.2 → 9.3, ekf 9.7 → 9.2 with the prior below; 15 rather than 10 m, which did as well
@@ -78,7 +79,8 @@ COLD_START_MAX_STD_M = 15.0
 #: ... and its fixes' scale (``FixNoiseScale``) starts from this prior instead of 1: it has no
 #: position but its fixes to learn their scatter from, while a wide model covariance makes it
 #: follow them slowly (chosen on MSFT folds 0–1 among 0.15, 0.25, 0.35, 0.5; the known-start
-#: sessions keep the prior 1). Both apply to the trackers that learn their fix noise only.
+#: sessions keep the prior 1; with the fixes at σ ≈ 13 m, 0.25 / 0.5 / 1 gave pf 8.6 / 9.2 / 10.2 m,
+#: skpf 9.6 / 9.6 / 9.5, ekf 9.4 / 9.3 / 9.3 there). Both apply to the trackers that learn their fix noise only.
 COLD_FIX_SCALE_PRIOR = 0.25
 #: ``FloorTracker`` follows one integer per floor: (building, level) packed as
 #: building · FLOOR_KEY + level (levels lie within ±FLOOR_KEY/2), so a state stored before
