@@ -52,17 +52,17 @@ class DirectStatement:
         if compiled is None:
             c = cast(SQLCompiler, self.statement.compile(dialect=dialect))
             names = {b: c.bind_names[b] for b in c.binds.values()}
-            binds = []
+            binds: dict[str, _Processor] = {}  # one processor per parameter name, however often it appears
             for b, name in names.items():
                 proc = b.type.dialect_impl(dialect).bind_processor(dialect)
-                if proc is not None and (name, proc) not in binds:
-                    binds.append((name, proc))
+                if proc is not None:
+                    binds.setdefault(name, proc)
             columns = getattr(self.statement, "selected_columns", ())
             compiled = _Compiled(
                 sql=c.string,
                 order=None if c.positiontup is None else tuple(c.positiontup),
                 fixed={name: b.value for b, name in names.items() if not b.required},
-                binds=tuple(binds),
+                binds=tuple(binds.items()),
                 results=tuple(col.type.dialect_impl(dialect).result_processor(dialect, None) for col in columns),
             )
             self._compiled_for[dialect] = compiled
@@ -75,7 +75,8 @@ class DirectStatement:
             values[name] = proc(values[name])
         return values if c.order is None else [values[name] for name in c.order]
 
-    def _run(self, conn: Connection, args: Any, action: Callable[[Any], Any]) -> Any:
+    @staticmethod
+    def _run(conn: Connection, c: _Compiled, args: Any, action: Callable[[Any], Any]) -> Any:
         """``action(cursor)`` on a cursor of ``conn``'s driver connection. A driver error is raised
         as SQLAlchemy raises it (``OperationalError`` for a locked or unreachable database, which
         the server answers 503, ``IntegrityError``, …), and a connection the error shows lost is
@@ -93,7 +94,7 @@ class DirectStatement:
             lost = dialect.is_disconnect(exc, driver, None)
             if lost:
                 conn.invalidate(exc)
-            raise DBAPIError.instance(self._compiled(dialect).sql, args, exc, dbapi_error,
+            raise DBAPIError.instance(c.sql, args, exc, dbapi_error,
                                       connection_invalidated=lost, dialect=dialect) from exc
 
     def execute(self, conn: Connection, params: Mapping[str, Any]) -> int:
@@ -105,12 +106,12 @@ class DirectStatement:
             cursor.execute(c.sql, args)
             return int(cursor.rowcount)
 
-        return self._run(conn, args, run)
+        return self._run(conn, c, args, run)
 
     def execute_many(self, conn: Connection, rows: Sequence[Mapping[str, Any]]) -> None:
         c = self._compiled(conn.dialect)
         args = [self._args(c, row) for row in rows]
-        self._run(conn, args, lambda cursor: cursor.executemany(c.sql, args))
+        self._run(conn, c, args, lambda cursor: cursor.executemany(c.sql, args))
 
     def first(self, conn: Connection, params: Mapping[str, Any]) -> tuple[Any, ...] | None:
         """The first row of a SELECT, its values through the columns' result processors."""
@@ -121,7 +122,7 @@ class DirectStatement:
             cursor.execute(c.sql, args)
             return cursor.fetchone()
 
-        row = self._run(conn, args, run)
+        row = self._run(conn, c, args, run)
         if row is None:
             return None
         return tuple(v if proc is None or v is None else proc(v) for v, proc in zip(row, c.results, strict=True))

@@ -46,9 +46,15 @@ _CLAIM_SEQ = DirectStatement(
     )
     .values(state=bindparam("new_state"), last_seq=bindparam("new_seq"), track_length=bindparam("new_length"))
 )
-_INSERT_ANSWER = DirectStatement(insert(_BATCHES).values({c.name: bindparam(c.name) for c in _BATCHES.columns}))
-_INSERT_ESTIMATES = DirectStatement(
-    insert(_ESTIMATES).values({c.name: bindparam(c.name) for c in _ESTIMATES.columns}))
+
+
+def _insert_every_column(table: Table) -> DirectStatement:
+    """An INSERT naming each column as a parameter of its own name (no column default applies)."""
+    return DirectStatement(insert(table).values({c.name: bindparam(c.name) for c in table.columns}))
+
+
+_INSERT_ANSWER = _insert_every_column(_BATCHES)
+_INSERT_ESTIMATES = _insert_every_column(_ESTIMATES)
 _DATE_INITIAL = (
     update(_ESTIMATES)
     .where(_ESTIMATES.c.session_id == bindparam("sid"), _ESTIMATES.c.idx == 0, _ESTIMATES.c.t.is_(None))
