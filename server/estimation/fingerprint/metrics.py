@@ -57,18 +57,28 @@ def evaluate(model, test: FingerprintSet, n_single: int = 200, seed: int = 0) ->
     return _measure(model, test, n_single, seed)[0]
 
 
+def _measurable(model, test: FingerprintSet) -> FingerprintSet:
+    """The rows of ``test`` a model can be measured on: its transmitter kinds, hearing something."""
+    return test.select_kinds(model.kinds).drop_empty() if model.kinds else test.drop_empty()
+
+
+def _raw_prediction(model, test: FingerprintSet) -> Prediction:
+    """The model's prediction of ``test`` with its raw (uncalibrated) covariance."""
+    return model.predict(test.aligned_rss(model.tx_ids_), test.heading_deg if model.use_heading else None,
+                         calibrated=False)
+
+
 def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Metrics, FingerprintSet, Prediction | None]:
     """(Metrics, the test rows measured, their prediction with the raw covariance)."""
-    test = test.select_kinds(model.kinds).drop_empty() if model.kinds else test.drop_empty()
+    test = _measurable(model, test)
     n_train = int(getattr(model, "n_fingerprints_", 0))
     fit_time_s = float(getattr(model, "fit_time_s_", float("nan")))
     if not len(test):
         nan = float("nan")
         return Metrics(model.name, n_train, 0, nan, nan, nan, nan, nan, nan, fit_time_s, nan, nan), test, None
-    R = test.aligned_rss(model.tx_ids_)
     heading = test.heading_deg if model.use_heading else None
     t0 = time.perf_counter()
-    pred = model.predict(R, heading, calibrated=False)
+    pred = _raw_prediction(model, test)
     batch_s = time.perf_counter() - t0
     err = np.hypot(pred.x - test.x, pred.y - test.y)
     true_keys = test.rp_keys()
@@ -225,12 +235,10 @@ def group_residuals(model_factory, validated, fs: FingerprintSet, by: str,
         m = model_factory()
         m.reuse_choices(validated)
         m.fit(fs.subset(~out))
-        test = fs.subset(out)
-        test = test.select_kinds(m.kinds).drop_empty() if m.kinds else test.drop_empty()
-        test = stratified_sample(test, MAX_HELD_OUT // folds, k)
+        test = stratified_sample(_measurable(m, fs.subset(out)), MAX_HELD_OUT // folds, k)
         if not len(test):
             continue
-        pred = m.predict(test.aligned_rss(m.tx_ids_), test.heading_deg if m.use_heading else None, calibrated=False)
+        pred = _raw_prediction(m, test)
         rs.append(pred.xy - np.column_stack([test.x, test.y]))
         cs.append(pred.covariance)
     return (np.concatenate(rs), np.concatenate(cs)) if rs else (np.zeros((0, 2)), np.zeros((0, 2, 2)))
