@@ -202,9 +202,11 @@ class FloorKNN:
         design = np.atleast_2d(design)
         if not len(design):
             return np.zeros(0, dtype=np.int64)
+        one_building = len(set(self.group_building_.tolist())) == 1
+        if one_building and self.sv_ is not None:  # no building to vote for: the SVC needs no distances
+            return self.svc_groups(design, np.ones((len(design), len(self.group_building_)), dtype=bool))
         D = self.distances(design)
-        buildings = np.unique(self.group_building_)
-        b = np.repeat(buildings, len(D)) if len(buildings) == 1 else self._vote(D, self.rp_building_)
+        b = np.full(len(D), self.group_building_[0]) if one_building else self._vote(D, self.rp_building_)
         in_b = self.group_building_[None, :] == b[:, None]  # (nq, groups)
         if self.sv_ is None:
             return self._vote(np.where(in_b[:, self.rp_group_], D, np.inf), self.rp_group_)

@@ -47,7 +47,9 @@ class KNNModel(FingerprintModel):
             d2 = np.where(mask[:, self.row_rp_], d2, np.inf)
         rows = np.arange(len(d2))[:, None]
         n_groups = len(self.group_floor_)
-        if n_groups > 1:
+        # with a floor classifier, ``_predict``'s mask holds one (building, floor) per query: a
+        # vote among its points would only pick that group again
+        if n_groups > 1 and (mask is None or getattr(self, "floor_clf_", None) is None):
             fk = self.floor_k if self.floor_k is not None else max(self.k, 10)
             idx = smallest_columns(d2, fk)
             w = self._weights(d2[rows, idx])
