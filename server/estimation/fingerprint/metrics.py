@@ -6,15 +6,16 @@ position, whatever the floor (a wrong floor shows up in ``floor_hit_rate``).
 own reference point (same (building, floor, label) or (building, floor, x, y)).
 
 `fit_and_validate` (the server's training step) measures a model on a bounded,
-stratified sample of a held-out split (its cost does not grow with the site), fits the
-covariance calibration on those residuals (calibration.py), keeps each held-out
-reference point's mean error (where the radio map is weak), and refits on everything.
+stratified sample of held-out rows (its cost does not grow with the site) — every device or
+user held out once where the rows carry them, else one split — fits the covariance
+calibration on those residuals (calibration.py), keeps each held-out reference point's mean
+error (where the radio map is weak), and refits on everything.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -68,23 +69,68 @@ def _raw_prediction(model, test: FingerprintSet) -> Prediction:
                          calibrated=False)
 
 
-def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Metrics, FingerprintSet, Prediction | None]:
-    """(Metrics, the test rows measured, their prediction with the raw covariance)."""
+@dataclass(frozen=True)
+class HeldOut:
+    """Held-out rows as a model that never saw them predicted them (pooled over folds by
+    ``pool``): what the accuracy metrics, the calibration and the weak points are computed from."""
+
+    residuals: np.ndarray  # (n, 2) estimate − truth, m
+    covariances: np.ndarray  # (n, 2, 2) the model's raw covariance
+    floor_hit: np.ndarray  # (n,) bool
+    building_hit: np.ndarray  # (n,) bool
+    mapped: np.ndarray  # (n,) bool: the best reference point is the row's own
+    points: list[PointError]  # mean error per held-out reference point
+
+    @property
+    def errors(self) -> np.ndarray:
+        return np.hypot(self.residuals[:, 0], self.residuals[:, 1])
+
+    @staticmethod
+    def of(model, test: FingerprintSet, pred: Prediction) -> HeldOut:
+        """``pred`` (``model``'s raw prediction of ``test``) scored against ``test``."""
+        r = pred.xy - np.column_stack([test.x, test.y])
+        idx = getattr(model, "rp_key_index_", {})
+        true_rp = np.array([idx.get(k, -1) for k in test.rp_keys()])
+        return HeldOut(r, pred.covariance, pred.floor == test.floor, pred.building == test.building,
+                       pred.best_rp == true_rp, point_errors(test, np.hypot(r[:, 0], r[:, 1])))
+
+    @staticmethod
+    def pool(parts: list[HeldOut]) -> HeldOut:
+        """Several folds' held-out rows as one; a reference point held out in several folds
+        gets the mean over all its rows."""
+        cat = lambda name: np.concatenate([getattr(h, name) for h in parts])  # noqa: E731
+        sums: dict[tuple, list] = {}
+        for h in parts:
+            for q in h.points:
+                acc = sums.setdefault((q.building, q.floor, q.x, q.y, q.label), [0, 0.0])
+                acc[0] += q.n
+                acc[1] += q.n * q.mean_error_m
+        points = [PointError(b, f, x, y, label, n, total / n) for (b, f, x, y, label), (n, total) in sums.items()]
+        return HeldOut(cat("residuals"), cat("covariances"), cat("floor_hit"), cat("building_hit"), cat("mapped"),
+                       points)
+
+    def scored(self, metrics: Metrics) -> Metrics:
+        """``metrics`` with its accuracy figures (and row count) taken from these rows."""
+        err = self.errors
+        return replace(metrics, n_test=len(err), mean_error_m=float(np.mean(err)),
+                       p50_error_m=float(np.percentile(err, 50)), p90_error_m=float(np.percentile(err, 90)),
+                       mapping_rate=float(np.mean(self.mapped)), floor_hit_rate=float(np.mean(self.floor_hit)),
+                       building_hit_rate=float(np.mean(self.building_hit)))
+
+
+def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Metrics, HeldOut | None]:
+    """(Metrics, the measured rows' outcomes with the raw covariance)."""
     test = _measurable(model, test)
     n_train = int(getattr(model, "n_fingerprints_", 0))
     fit_time_s = float(getattr(model, "fit_time_s_", float("nan")))
+    nan = float("nan")
     if not len(test):
-        nan = float("nan")
-        return Metrics(model.name, n_train, 0, nan, nan, nan, nan, nan, nan, fit_time_s, nan, nan), test, None
+        return Metrics(model.name, n_train, 0, nan, nan, nan, nan, nan, nan, fit_time_s, nan, nan), None
     heading = test.heading_deg if model.use_heading else None
     t0 = time.perf_counter()
     pred = _raw_prediction(model, test)
     batch_s = time.perf_counter() - t0
-    err = np.hypot(pred.x - test.x, pred.y - test.y)
-    true_keys = test.rp_keys()
-    idx = getattr(model, "rp_key_index_", {})
-    true_rp = np.array([idx.get(k, -1) for k in true_keys])
-    mapping = float(np.mean(pred.best_rp == true_rp))
+    held = HeldOut.of(model, test, pred)
 
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(test), size=min(n_single, len(test)), replace=False)
@@ -97,20 +143,13 @@ def _measure(model, test: FingerprintSet, n_single: int, seed: int) -> tuple[Met
         t1 = time.perf_counter()
         model.locate(s, h)
         times.append(time.perf_counter() - t1)
-    return Metrics(
-        algorithm=model.name,
-        n_train=n_train,
-        n_test=len(test),
-        mean_error_m=float(np.mean(err)),
-        p50_error_m=float(np.percentile(err, 50)),
-        p90_error_m=float(np.percentile(err, 90)),
-        mapping_rate=mapping,
-        floor_hit_rate=float(np.mean(pred.floor == test.floor)),
-        building_hit_rate=float(np.mean(pred.building == test.building)),
-        fit_time_s=fit_time_s,
+    metrics = Metrics(
+        algorithm=model.name, n_train=n_train, n_test=len(test), mean_error_m=nan, p50_error_m=nan,
+        p90_error_m=nan, mapping_rate=nan, floor_hit_rate=nan, building_hit_rate=nan, fit_time_s=fit_time_s,
         us_per_query=1e6 * batch_s / len(test),
-        single_query_us=1e6 * float(np.median(times)) if times else float("nan"),
-    ), test, pred
+        single_query_us=1e6 * float(np.median(times)) if times else nan,
+    )
+    return held.scored(metrics), held
 
 
 def holdout_split(fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2, seed: int = 0):
@@ -196,52 +235,48 @@ def point_errors(test: FingerprintSet, err: np.ndarray) -> list[PointError]:
 
 
 def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200,
-             calibrate_on: tuple[np.ndarray, np.ndarray] | None = None) -> Validation:
+             pooled: HeldOut | None = None) -> Validation:
     """Measure a fitted model on ``test`` (capped at MAX_HELD_OUT rows, stratified by
-    building and floor) and fit its covariance calibration on the residuals — or on
-    ``calibrate_on`` = (residuals, raw covariances) when given (`group_residuals`)."""
-    metrics, test, pred = _measure(model, stratified_sample(test, MAX_HELD_OUT), n_single, 0)
-    if pred is None:
+    building and floor) and fit its covariance calibration on the residuals. With ``pooled``
+    (`group_held_out`: every group held out once) the accuracy figures, the calibration and
+    the weak points come from those rows instead; the timings stay ``model``'s on ``test``."""
+    metrics, held = _measure(model, stratified_sample(test, MAX_HELD_OUT), n_single, 0)
+    if pooled is not None and len(pooled.residuals):
+        held, metrics = pooled, pooled.scored(metrics)
+    if held is None:
         nan = NisSummary(float("nan"), float("nan"))
         return Validation(metrics, CovarianceCalibration(), nan, nan, [], split)
-    r = pred.xy - np.column_stack([test.x, test.y])
-    err = np.hypot(r[:, 0], r[:, 1])
-    c = pred.covariance
-    if calibrate_on is not None and len(calibrate_on[0]):
-        r, c = calibrate_on
+    r, c = held.residuals, held.covariances
     cal = fit_calibration(r, c)
     return Validation(
         metrics=metrics, calibration=cal, nis_raw=NisSummary.of(nis(r, c)),
-        nis_calibrated=NisSummary.of(nis(r, cal.apply(c))), points=point_errors(test, err), split=split,
+        nis_calibrated=NisSummary.of(nis(r, cal.apply(c))), points=held.points, split=split,
     )
 
 
-def group_residuals(model_factory, validated, fs: FingerprintSet, by: str,
-                    folds: int) -> tuple[np.ndarray, np.ndarray]:
-    """Held-out (residuals, raw covariances) of every ``by`` group (device, user): the
-    groups are split into ``folds`` folds at random, each held out of a model fitted on
-    the rest of ``fs`` (``validated``'s choices reused, at most MAX_HELD_OUT // folds rows
-    measured per fold).
+def group_held_out(model_factory, validated, fs: FingerprintSet, by: str, folds: int) -> HeldOut | None:
+    """Every ``by`` group (device, user) held out once: the groups are split into ``folds``
+    folds at random, each held out of a model fitted on the rest of ``fs`` (``validated``'s
+    choices reused, at most MAX_HELD_OUT // folds rows measured per fold); None when no
+    fold had a row to measure.
 
     Why: one held-out split of a few groups is a lottery when groups differ — on the MSFT
     site-1 walks (each walk a device) the training step's 5 held-out walks had a mean
     error of 65 m where new walks have 13 m, and the scale fitted on them (27.6) made the
-    served σ ≈ 40 m. Every group held out once imitates a new walk without that luck."""
+    served σ ≈ 40 m. Every group held out once imitates a new walk without that luck, for the
+    calibration and for the figures that decide ``if_better``."""
     groups = np.asarray(getattr(fs, by)).astype(str)
     names = np.random.default_rng(0).permutation(np.unique(groups))
-    rs, cs = [], []
+    parts = []
     for k in range(min(folds, len(names))):
         out = np.isin(groups, names[k::folds])
         m = model_factory()
         m.reuse_choices(validated)
         m.fit(fs.subset(~out))
         test = stratified_sample(_measurable(m, fs.subset(out)), MAX_HELD_OUT // folds, k)
-        if not len(test):
-            continue
-        pred = _raw_prediction(m, test)
-        rs.append(pred.xy - np.column_stack([test.x, test.y]))
-        cs.append(pred.covariance)
-    return (np.concatenate(rs), np.concatenate(cs)) if rs else (np.zeros((0, 2)), np.zeros((0, 2, 2)))
+        if len(test):
+            parts.append(HeldOut.of(m, test, _raw_prediction(m, test)))
+    return HeldOut.pool(parts) if parts else None
 
 
 def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
@@ -254,18 +289,20 @@ def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_
     ``how="auto"``: held-out devices when the site has at least 3, else held-out
     reference points — not random scans, whose residuals at surveyed points are too small
     for a walker between them (a covariance calibrated on them is overconfident). A group
-    split ("device", "user") calibrates on every group held out once (`group_residuals`),
-    its metrics stay those of the one split."""
+    split ("device", "user") is measured and calibrated on every group held out once
+    (`group_held_out`); the split model gives the timings."""
     if how == "auto":
         how = "device" if fs.device is not None and len(set(fs.device.astype(str))) >= 3 else "points"
     train, test, split = holdout_split(fs, how, test_fraction, seed)
     validated = model_factory().fit(train)
     del train  # memory: one training set's matrices at a time
-    on = None
+    pooled = None
     if how in ("device", "phone", "user"):
-        on = group_residuals(model_factory, validated, fs, "user" if how == "user" else "device",
-                             max(2, round(1 / test_fraction)))
-    v = validate(validated, test, split, n_single=50, calibrate_on=on)
+        by, folds = ("user" if how == "user" else "device"), max(2, round(1 / test_fraction))
+        pooled = group_held_out(model_factory, validated, fs, by, folds)
+        if pooled is not None:
+            split = f"every {by} held out once, {folds} folds (timings: {split})"
+    v = validate(validated, test, split, n_single=50, pooled=pooled)
     m = model_factory()
     m.reuse_choices(validated)
     del validated, test
