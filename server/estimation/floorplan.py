@@ -345,6 +345,16 @@ class Walkable:
             out[edge] = shapely.intersects_xy(self.geometry, p[edge, 0], p[edge, 1])
         return out
 
+    def nearest_inside(self, points: np.ndarray) -> np.ndarray:
+        """Points (n, 2) with each one outside moved to the nearest point of the area (a new array;
+        points inside are unchanged)."""
+        p = np.array(points, float).reshape(-1, 2)
+        outside = np.flatnonzero(~self.contains(p))
+        if len(outside):
+            lines = shapely.shortest_line(self.geometry, shapely.points(p[outside]))
+            p[outside] = shapely.get_coordinates(lines)[0::2]  # each line starts on the area
+        return p
+
 
 class WallIndex:
     """Which moves cross a wall, for many walls: a grid of ``cell_m`` cells lists the walls whose

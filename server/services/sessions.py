@@ -31,8 +31,10 @@ from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
+from server.services.floorplans import usable_areas
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
+from server.store import floorplans as plan_store
 from server.store import models as model_store
 from server.store import sessions as store
 from server.store import sites as site_store
@@ -123,18 +125,20 @@ class SessionService:
             return _visible(store.get_session(s, session_id), principal, session_id)
 
     def track(self, principal: Principal, session_id: str, smoothed: bool = False) -> list[Estimate]:
-        """The stored track, oldest first; ``smoothed``: its fixed-interval (RTS) smoothing
-        (``server.estimation.tracking.smoother``: same length, times, floors, buildings and sources)."""
+        """The stored track, oldest first; ``smoothed``: its fixed-interval (RTS) smoothing, kept in
+        the floors' walkable areas (``server.estimation.tracking.smoother``: same length, times,
+        floors, buildings and sources)."""
         return self.track_marked(principal, session_id, smoothed)[0]
 
     def track_marked(self, principal: Principal, session_id: str, smoothed: bool = False) -> tuple[list[Estimate], set[int]]:
         """The track (smoothed or not) and the indexes of its scan estimates whose fix the
         innovation gate refused (from the stored batch answers)."""
         with self.db.transaction() as s:
-            _visible(store.get_session(s, session_id), principal, session_id)
+            info = _visible(store.get_session(s, session_id), principal, session_id)
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
-        return (smooth_track(track) if smoothed else track), refused
+            areas = usable_areas(plan_store.walkable_areas(s, info.site_id)) if smoothed else {}
+        return (smooth_track(track, areas) if smoothed else track), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None

@@ -109,6 +109,24 @@ def test_the_smoothed_track_has_the_live_tracks_shape_and_is_no_worse(device, si
         assert np.trace(b["covariance"]) <= np.trace(a["covariance"]) + 1e-9
 
 
+def test_the_smoothed_track_stays_in_the_floors_walkable_area(device, admin, scripted):
+    """The walk's corridor (1 m wide along y = 2) as floor 0's walkable area: the live kf track
+    drifts out of it (kf knows no plan), the smoothed one is inside it throughout."""
+    corridor = [[[0.0, 1.5], [50.0, 1.5], [50.0, 2.5], [0.0, 2.5]]]
+    floors = [{**FLOORS[0], "walkable": corridor}, FLOORS[1]]
+    answer = admin.post("/api/v1/sites", json={"name": "corridor", "floors": floors, "transmitters": TRANSMITTERS})
+    assert answer.status_code == 201, answer.text
+    sid, _ = _walk(device, answer.json()["id"], scripted)
+    live = device.get(f"/api/v1/sessions/{sid}/track").json()
+    smoothed = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
+
+    def inside(e: dict) -> bool:
+        return -1e-9 <= e["x"] <= 50.0 + 1e-9 and 1.5 - 1e-9 <= e["y"] <= 2.5 + 1e-9
+
+    assert not all(inside(e) for e in live)
+    assert all(inside(e) for e in smoothed), [(e["x"], e["y"]) for e in smoothed if not inside(e)][:5]
+
+
 def test_a_closed_sessions_smoothed_track_can_be_read_and_others_cannot(device, admin, site, scripted):
     sid, _ = _walk(device, site, scripted)
     assert device.delete(f"/api/v1/sessions/{sid}").status_code == 204

@@ -122,3 +122,13 @@ def test_bad_transforms_and_too_big_plans_are_refused(monkeypatch):
     monkeypatch.setattr("server.estimation.floorplan.MAX_VERTICES", 5)
     with pytest.raises(PlanError, match="10 vertices, more than 5"):
         read_plan(plan_geojson(), bbox_size=(W, H))
+
+
+def test_nearest_inside_moves_only_the_points_outside_to_the_nearest_point_of_the_area():
+    from server.estimation.floorplan import Walkable
+
+    area = Walkable([[[0.0, 0.0], [10.0, 0.0], [10.0, 2.0], [0.0, 2.0]]])  # a 10 × 2 m corridor
+    points = np.array([[5.0, 1.0], [5.0, 3.5], [-1.0, -1.0], [12.0, 1.5], [10.0, 2.0]])
+    moved = area.nearest_inside(points)
+    np.testing.assert_allclose(moved, [[5.0, 1.0], [5.0, 2.0], [0.0, 0.0], [10.0, 1.5], [10.0, 2.0]], atol=1e-9)
+    assert points[1, 1] == 3.5  # a new array

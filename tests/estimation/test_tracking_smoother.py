@@ -3,13 +3,15 @@ EKF, and better than the live track on a simulated walk."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
 from server.estimation.tracking import make_tracker
 from server.estimation.tracking.motion import step_noise_cov
 from server.estimation.tracking.smoother import smooth_track
-from server.estimation.types import Estimate, Step, step_displacement
+from server.estimation.types import Estimate, Fix, Step, step_displacement
 from tests.helpers.simulate import simulate_walk
 
 
@@ -76,8 +78,6 @@ def test_smoothing_beats_the_live_track_and_a_floor_change_splits_it():
 
 
 def test_a_building_change_at_the_same_level_splits_the_track_and_keeps_each_building():
-    from dataclasses import replace
-
     walk = simulate_walk(seed=4, legs=((0.0, 30), (90.0, 30)), fix_std_m=2.0)
     track, *_ = _track("ekf-xy", walk)
     cut = len(track) // 2
@@ -103,3 +103,26 @@ def test_a_cloud_that_shrinks_in_a_step_does_not_blow_the_smoothed_track_up():
         assert xs[:, 0].min() - 3.0 <= e.x <= xs[:, 0].max() + 3.0
         assert xs[:, 1].min() - 3.0 <= e.y <= xs[:, 1].max() + 3.0
         assert np.all(np.linalg.eigvalsh(np.array(e.covariance)) > 0)
+
+
+def test_smoothed_positions_stay_in_the_floors_walkable_area_and_nothing_else_moves():
+    """A corridor 1 m wide along y = 0 and fixes biased 1.5 m to its side: the plain smoother
+    follows them out of the corridor; with the floor's walkable area every smoothed position
+    is inside it, those the plain smoother left inside are unchanged, covariances too, and
+    another floor's area changes nothing."""
+    from server.estimation.floorplan import Walkable
+
+    walk = simulate_walk(seed=4, legs=((90.0, 40),), fix_std_m=1.0)
+    walk.events = [replace(e, y=e.y + 1.5) if isinstance(e, Fix) else e for e in walk.events]
+    track, *_ = _track("ekf-xy", walk)
+    corridor = Walkable([[[-5.0, -0.5], [40.0, -0.5], [40.0, 0.5], [-5.0, 0.5]]])
+    plain = smooth_track(track)
+    kept = smooth_track(track, {(0, 0): corridor})
+    xy_plain = np.array([[e.x, e.y] for e in plain])
+    xy_kept = np.array([[e.x, e.y] for e in kept])
+    inside = corridor.contains(xy_plain)
+    assert (~inside).sum() > len(track) // 4  # the bias took the plain smoother out
+    assert corridor.contains(xy_kept).all()
+    np.testing.assert_array_equal(xy_kept[inside], xy_plain[inside])
+    assert [e.covariance for e in kept] == [e.covariance for e in plain]
+    assert smooth_track(track, {(0, 1): corridor}) == plain
