@@ -143,12 +143,16 @@ class LocalizerClient:
             body["heading_deg"] = heading_deg
         return await self.request("POST", f"{API}/sites/{site_id}/locate", body)
 
-    async def open_session(self, site_id, filter: str, initial: dict | None = None, model_id=None) -> dict:
+    async def open_session(self, site_id, filter: str, initial: dict | None = None, model_id=None,
+                           seed: int | None = None) -> dict:
+        """A new session; ``seed`` (an extension) fixes its tracker's random draws."""
         body: dict[str, Any] = {"site_id": site_id, "filter": filter}
         if initial is not None:
             body["initial"] = initial
         if model_id is not None:
             body["model_id"] = model_id
+        if seed is not None:
+            body["seed"] = seed
         return await self.request("POST", f"{API}/sessions", body)
 
     async def post_batch(self, session_id, batch: dict, retries: int = 4) -> dict:

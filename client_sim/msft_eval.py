@@ -28,6 +28,7 @@ import asyncio
 import json
 import math
 import secrets
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -341,7 +342,7 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
 
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
-                        interval_s: float, smoothed: bool = False) -> dict:
+                        interval_s: float, smoothed: bool = False, seed_salt: int | None = None) -> dict:
     w = p.walk
     init = None
     if initial:
@@ -349,7 +350,8 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
         first = [s for s in steps if s.t > w.t_start]
         if first:
             init["heading_deg"] = round(first[0].heading_deg, 2)
-    session = await device.open_session(site_id, flt, init)
+    seed = None if seed_salt is None else zlib.crc32(f"{w.name}|{seed_salt}".encode())
+    session = await device.open_session(site_id, flt, init, seed=seed)
     batches = make_batches(steps, p.scans, w.t_start, w.t_end, interval_s)
     batch_rows = []
     for b in batches:
@@ -394,6 +396,9 @@ class Options:
     plan_margin_m: float = 0.0
     #: also score each session's smoothed track (``GET …/track?smoothed=true``) as "<name> smoothed"
     smoothed: bool = False
+    #: seed each session from its walk and this salt (the ``seed`` extension): runs of two settings
+    #: with the same salt use the same draws walk by walk (None: the server's own seed per session)
+    seed_salt: int | None = None
 
 
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
@@ -460,7 +465,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                     name = (flt if init else f"{flt} (no initial)") + ("" if plan == "none" else f" [plan: {plan}]")
                     try:
                         res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s,
-                                                  opt.smoothed)
+                                                  opt.smoothed, opt.seed_salt)
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -573,7 +578,8 @@ def main(a) -> int:
                   fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"),
                   heading=getattr(a, "heading", "gyro"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
-                  plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)))
+                  plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)),
+                  seed_salt=getattr(a, "seed_salt", None))
     for variant in opt.plans:
         if variant not in PLANS:
             raise CliError(f"unknown --plan {variant!r} (comma list of {', '.join(PLANS)})", EXIT_USAGE)

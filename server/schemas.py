@@ -305,6 +305,10 @@ class SessionIn(Strict):
                         json_schema_extra=_FILTER_ENUM)
     model_id: DbId | None = None
     initial: InitialIn | None = None
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] | None = Field(
+        None, description="Extension. The tracker's random seed (a particle filter's draws): the same seed, "
+        "model and batches give the same track, for replays and for comparing settings on the same draws. "
+        "Default: derived from the session id.")
 
     @field_validator("filter")
     @classmethod

@@ -42,7 +42,7 @@ _NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such ses
 def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> SessionOut:
     init = body.initial
     initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance, init.building)
-    return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial))
+    return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial, body.seed))
 
 
 @router.post(

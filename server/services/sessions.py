@@ -92,10 +92,11 @@ class SessionService:
     # -- open / read / close ---------------------------------------------------------------
     def open(
         self, principal: Principal, site_id: int, filter: str, model_id: int | None = None,
-        initial: InitialPosition | None = None,
+        initial: InitialPosition | None = None, seed: int | None = None,
     ) -> SessionInfo:
+        """A new session; ``seed`` fixes its tracker's random draws (default: from the session id)."""
         session_id = str(uuid.uuid4())
-        est = SessionEstimator(filter, seed=uuid.UUID(session_id).int % 2**32)
+        est = SessionEstimator(filter, seed=uuid.UUID(session_id).int % 2**32 if seed is None else seed)
         with self.db.transaction() as s:
             if site_store.site_settings(s, site_id) is None:
                 raise NotFound(f"site {site_id} does not exist")
