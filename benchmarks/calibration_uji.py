@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.calibration import IDENTITY, clipped_mean, fit_calibration, nis
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
 from server.estimation.fingerprint.registry import make_model
@@ -30,7 +31,7 @@ def _sample(fs, n: int):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default="../shared/data/ujiindoorloc", help="folder with trainingData.csv (default %(default)s)")
+    ap.add_argument("--data", default=str(UJIINDOORLOC), help="folder with trainingData.csv (default %(default)s)")
     ap.add_argument("--sample", type=int, default=2000, help="scans per held-out user set (0 = all; default %(default)s)")
     ap.add_argument("--algorithms", default="knn,wknn", help="comma-separated (default %(default)s)")
     a = ap.parse_args(argv)

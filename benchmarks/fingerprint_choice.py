@@ -24,10 +24,11 @@ from dataclasses import replace
 
 import numpy as np
 
+from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
 from server.estimation.fingerprint.registry import make_model
 
-DATA = "../shared/data/ujiindoorloc/trainingData.csv"
+DATA = UJIINDOORLOC / "trainingData.csv"
 CHOOSE = {2, 6, 7, 14}
 REPORT = {4, 8, 10, 13, 17, 18}
 

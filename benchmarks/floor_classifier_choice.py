@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.artifact import to_bytes
 from server.estimation.fingerprint.base import TrainingData
 from server.estimation.fingerprint.dataset import FingerprintSet, group_split
@@ -233,7 +234,7 @@ def leave_one_user_out(fs: FingerprintSet, names: list[str]) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, default=Path("../shared/data/ujiindoorloc"),
+    ap.add_argument("--data", type=Path, default=UJIINDOORLOC,
                     help="folder with trainingData.csv (default %(default)s)")
     ap.add_argument("--stage", default="all", choices=["choose", "report", "phones", "lou", "scale", "all"])
     ap.add_argument("--only", default="", help="comma-separated substrings of candidate names")

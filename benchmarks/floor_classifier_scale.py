@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.base import FLOOR_CLASSIFIER_ROWS
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
 from server.estimation.fingerprint.registry import make_model
@@ -40,7 +41,7 @@ def run(train, test, cap: int) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, default=Path("../shared/data/ujiindoorloc"),
+    ap.add_argument("--data", type=Path, default=UJIINDOORLOC,
                     help="folder with trainingData.csv (default %(default)s)")
     ap.add_argument("--caps", default="1000,2000,4000,8000,0", help="caps tried on CHOOSE (0 = all; default %(default)s)")
     ap.add_argument("--stage", default="both", choices=["choose", "report", "both"], help="default %(default)s")

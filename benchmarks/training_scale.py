@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.shared_data import UJIINDOORLOC
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -108,7 +110,7 @@ def one_size(data: Path, n: int, algorithm: str, params: dict) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", type=Path, default=Path("../shared/data/ujiindoorloc"),
+    ap.add_argument("--data", type=Path, default=UJIINDOORLOC,
                     help="folder with UJIIndoorLoc's trainingData.csv (default %(default)s)")
     ap.add_argument("--sizes", default="1000,5000,20000,100000", help="fingerprint counts (default %(default)s)")
     ap.add_argument("--algorithm", default="wknn", help="algorithm trained (default %(default)s)")
