@@ -34,11 +34,14 @@ the PF's smoothed track within 0.01 m either way), docs/msft-evaluation.md.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from server.estimation.floorplan import Walkable
 from server.estimation.types import Estimate
+
+if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
+    from server.estimation.floorplan import Walkable
 
 
 def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
