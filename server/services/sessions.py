@@ -28,7 +28,7 @@ from server.db import Database
 from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, SessionInfo, floor_names
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.session import SessionEstimator
-from server.estimation.tracking import TRACKERS, find_merge_target, merge_points
+from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
 from server.services.floorplans import usable_areas
@@ -139,10 +139,7 @@ class SessionService:
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
             areas = usable_areas(plan_store.walkable_areas(s, info.site_id)) if smoothed else {}
-        if not smoothed:
-            return track, refused
-        tracker = TRACKERS.get(info.filter)
-        return smooth_track(track, areas, None if tracker is None else tracker.smoothing_step_var_m2), refused
+        return (smooth_track(track, areas) if smoothed else track), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None

@@ -58,34 +58,6 @@ def test_equals_filterpy_rts_for_the_two_state_ekf():
         np.testing.assert_allclose(np.array(smoothed[i].covariance), Ps_ref[k], atol=1e-9)
 
 
-def test_a_fixed_step_noise_is_filterpys_rts_with_that_q_and_the_self_calibrating_kalman_filters_use_it():
-    """``step_var_m2`` replaces each step's stored growth by q·I: filterpy's RTS with Q = q·I on the
-    same filtered states; skpf/ekf/ukf tracks are smoothed that way, the PF and the two-state filters
-    with their stored growth."""
-    from server.estimation.tracking import TRACKERS
-    from server.estimation.tracking.selfcal import SMOOTHING_STEP_VAR_M2
-
-    walk = simulate_walk(seed=5, legs=((0.0, 12), (90.0, 12)))
-    track, filtered, _, us = _track("ekf-xy", walk)
-    U = np.cumsum(us, axis=0)
-    Xs = np.array([m for m, _ in filtered]) - U
-    Ps = np.array([P for _, P in filtered])
-    q = 0.3
-    xs_ref, Ps_ref, _, _ = KalmanFilter(dim_x=2, dim_z=2).rts_smoother(
-        Xs, Ps, Fs=[np.eye(2)] * len(Xs), Qs=[q * np.eye(2)] * len(Xs))
-    smoothed = smooth_track(track, step_var_m2=q)
-    k, last_of_index = -1, {}
-    for i, e in enumerate(smoothed):
-        k += e.source in ("init", "step")
-        last_of_index[k] = i
-    for k, i in last_of_index.items():
-        np.testing.assert_allclose([smoothed[i].x, smoothed[i].y], xs_ref[k] + U[k], atol=1e-9)
-        np.testing.assert_allclose(np.array(smoothed[i].covariance), Ps_ref[k], atol=1e-9)
-    assert {n: TRACKERS[n].smoothing_step_var_m2 for n in ("skpf", "ekf", "ukf", "pf", "kf", "ekf-xy")} == {
-        "skpf": SMOOTHING_STEP_VAR_M2, "ekf": SMOOTHING_STEP_VAR_M2, "ukf": SMOOTHING_STEP_VAR_M2,
-        "pf": None, "kf": None, "ekf-xy": None}
-
-
 def test_smoothing_beats_the_live_track_and_a_floor_change_splits_it():
     walk = simulate_walk(seed=4, legs=((0.0, 30), (90.0, 30)), fix_std_m=2.0)
     for name in ("ekf", "ekf-xy", "skpf", "kf"):

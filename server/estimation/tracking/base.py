@@ -131,9 +131,6 @@ class Tracker(ABC):
     supports_range: ClassVar[bool] = False
     #: whether the state carries the PDR's heading bias and step scale (``selfcal``)
     augmented: ClassVar[bool] = False
-    #: the process noise per step (m²·I) the smoother gives this filter's tracks; None: the stored
-    #: covariance growth (the exact RTS smoother of the linear two-state filters), ``smoother``
-    smoothing_step_var_m2: ClassVar[float | None] = None
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed: int | None = None):
         self.walls = as_walls(walls)

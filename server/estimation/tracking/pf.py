@@ -345,7 +345,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
 
     name = "pf"
     dim = 4
-    smoothing_step_var_m2 = None  # the stored growth: a fixed one lost on MSFT folds 2–3
 
     def _configure(
         self,

@@ -25,7 +25,6 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
-from typing import ClassVar
 
 import numpy as np
 
@@ -135,19 +134,10 @@ def symmetric(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
-#: the smoother's process noise per step for the self-calibrating Kalman-family tracks (m²·I),
-#: instead of the stored growth of their position marginal (which leaves out the coupling through
-#: the heading bias). Chosen on MSFT folds 0–1 (skpf/ekf smoothed 3.65/3.64 → 3.50/3.52 m, with the
-#: walkable projection), reported on folds 2–3 (2.85/2.91 → 2.69/2.77); the PF keeps the stored
-#: growth (a fixed Q lost on folds 2–3 there), docs/msft-evaluation.md.
-SMOOTHING_STEP_VAR_M2 = 0.3
-
-
 class Calibrating:
     """Mixin of the augmented trackers: what they have learned, for reports and tests."""
 
     augmented = True
-    smoothing_step_var_m2: ClassVar[float | None] = SMOOTHING_STEP_VAR_M2
 
     @property
     def state_mean(self) -> np.ndarray:  # pragma: no cover - overridden

@@ -24,10 +24,6 @@ shrink in a step where walls kill particles, ``_predicted_cov``), and each fix e
 estimate it produced (a refused fix moved nothing there, so it moves nothing here either).
 ``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
 
-The self-calibrating Kalman-family filters (skpf, ekf, ukf) are smoothed with a fixed process
-noise per step instead (``Tracker.smoothing_step_var_m2``, ``selfcal.SMOOTHING_STEP_VAR_M2``):
-their stored growth is their position marginal's, without the coupling through the heading bias.
-
 Where the floor has a walkable area (``areas``), a smoothed position outside it is moved to
 its nearest walkable point: the recursion knows nothing of the plan, and a walker is never
 inside a wall. Chosen on MSFT folds 0–1 among other wall-aware and process-noise variants
@@ -70,12 +66,9 @@ def _predicted_cov(P: np.ndarray, Pp: np.ndarray) -> np.ndarray:
     return P + (V * np.maximum(w, 0.0)) @ V.T + 1e-12 * np.eye(len(P))
 
 
-def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None = None,
-                 step_var_m2: float | None = None) -> list[Estimate]:
+def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None = None) -> list[Estimate]:
     """The RTS-smoothed track: same length, times, floors and sources; smoothed means and
-    covariances. ``areas``: walkable areas by (building, floor); smoothed positions are kept in them.
-    ``step_var_m2``: each step's process noise is that times I instead of the stored growth (the
-    tracker's ``smoothing_step_var_m2``)."""
+    covariances. ``areas``: walkable areas by (building, floor); smoothed positions are kept in them."""
     out: list[Estimate] = list(track)
     for a, b in _segments(track):
         # time indexes: a new one at every step estimate (and at the segment's first estimate)
@@ -98,8 +91,7 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
         for k in range(n - 2, -1, -1):
             nxt = track[first[k + 1]]
             xp = np.array([nxt.x, nxt.y])
-            Pp = (_predicted_cov(Ps[k], np.array(nxt.covariance, float)) if step_var_m2 is None
-                  else Ps[k] + step_var_m2 * np.eye(2))
+            Pp = _predicted_cov(Ps[k], np.array(nxt.covariance, float))
             C = Ps[k] @ np.linalg.inv(Pp)
             x_s[k] = xs[k] + C @ (x_s[k + 1] - xp)
             P = Ps[k] + C @ (P_s[k + 1] - Pp) @ C.T
