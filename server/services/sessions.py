@@ -31,10 +31,8 @@ from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
-from server.services.floorplans import usable_areas
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
-from server.store import floorplans as plan_store
 from server.store import models as model_store
 from server.store import sessions as store
 from server.store import sites as site_store
@@ -135,11 +133,13 @@ class SessionService:
         """The track (smoothed or not) and the indexes of its scan estimates whose fix the
         innovation gate refused (from the stored batch answers)."""
         with self.db.transaction() as s:
-            info = _visible(store.get_session(s, session_id), principal, session_id)
+            row = _visible(store.feed_state(s.connection(), session_id), principal, session_id)
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
-            areas = usable_areas(plan_store.walkable_areas(s, info.site_id)) if smoothed else {}
-        return (smooth_track(track, areas) if smoothed else track), refused
+        if not smoothed:
+            return track, refused
+        # the floors' walkable areas as the batches use them (the site's context, cached by revision)
+        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
