@@ -446,6 +446,9 @@ class ModelMetrics(BaseModel):
     building_hit_rate: float | None = None
     us_per_query: float | None = None
     held_out: str | None = Field(None, description="How the held-out sample was drawn.")
+    held_out_pooled: bool | None = Field(None, description=(
+        "True when the figures come from every device (or user) held out once, not from one split; "
+        "`if_better` compares only figures of the same kind."))
     calibration: CalibrationOut | None = Field(None, description=(
         "The answers' covariance is scale·C + floor_m²·I of the model's own C, fitted on the held-out sample."))
     nis_raw: NisOut | None = Field(None, description="Held-out NIS rᵀC⁻¹r before calibration (calibrated: mean 2).")

@@ -122,7 +122,7 @@ def metrics_record(v: Validation) -> dict[str, Any]:
     m = v.metrics
     figures = {**m.as_api_dict(), "fit_time_s": m.fit_time_s, "validated_on": m.n_test,
                "building_hit_rate": m.building_hit_rate, "us_per_query": m.single_query_us,
-               "held_out": v.split,
+               "held_out": v.split, "held_out_pooled": v.pooled,
                "calibration": {"scale": v.calibration.scale, "floor_m": v.calibration.floor_m},
                "nis_raw": {"mean": v.nis_raw.mean, "median": v.nis_raw.median},
                "nis_calibrated": {"mean": v.nis_calibrated.mean, "median": v.nis_calibrated.median},
@@ -173,11 +173,15 @@ class ActivationDecision:
         return asdict(self)
 
 
-def decide_activation(requested: Activation, mean_error_m: float | None, active: ModelInfo | None) -> ActivationDecision:
+def decide_activation(requested: Activation, mean_error_m: float | None, active: ModelInfo | None,
+                      pooled: bool = False) -> ActivationDecision:
     """``if_better``: active when no model is, or when its held-out mean error (the same
     figure on both models, each on its own held-out sample) is no worse than the active
     model's; a model without that figure (too few fingerprints to validate) never
-    displaces one."""
+    displaces one. ``pooled``: the new figure comes from every device held out once; it is
+    not compared with an active model's figure from one split (a model trained before the
+    pooled figures: on a site of a few walks one split can be tens of metres off either way),
+    and the new model then waits."""
     if active is None:
         return ActivationDecision(requested, requested != "never", "no active model" if requested != "never"
                                   else "activation not requested", mean_error_m)
@@ -195,6 +199,11 @@ def decide_activation(requested: Activation, mean_error_m: float | None, active:
         return decided(False, "no held-out error to compare (too few fingerprints to validate)")
     if theirs is None:
         return decided(True, f"the active model {active.id} has no held-out error")
+    if pooled != bool((active.metrics or {}).get("held_out_pooled")):
+        return decided(False, f"held-out errors not comparable: model {active.id}'s is from "
+                              f"{'one split' if pooled else 'every device held out once'}, this model's from "
+                              f"{'every device held out once' if pooled else 'one split'}; retrain model "
+                              f"{active.id}'s algorithm or activate this one with 'always'")
     if mean_error_m <= theirs:
         return decided(True, f"held-out mean error {mean_error_m:.2f} m ≤ {theirs:.2f} m of model {active.id}")
     return decided(False, f"held-out mean error {mean_error_m:.2f} m > {theirs:.2f} m of model {active.id}")
@@ -208,7 +217,8 @@ def _store(db: Database, site_id: int, model_id: int, blob: bytes, trained_on: i
     for attempt in range(2):
         try:
             with db.transaction() as s:
-                decision = decide_activation(requested, error, store.active_model(s, site_id))
+                decision = decide_activation(requested, error, store.active_model(s, site_id),
+                                             bool((metrics or {}).get("held_out_pooled")))
                 if attempt:
                     decision = replace(decision, activated=False,
                                        reason="another model of the site became active at the same moment")

@@ -54,10 +54,12 @@ def test_algorithm_defaults_to_wknn(admin, site):  # noqa: F811
     assert model["algorithm"] == "wknn" and model["status"] == "ready", model
 
 
-def _model(model_id: int, error: float | None) -> ModelInfo:
+def _model(model_id: int, error: float | None, pooled: bool | None = None) -> ModelInfo:
     now = datetime.now(UTC)
-    return ModelInfo(model_id, 1, "knn", {}, False, (), True, "ready", None, True, 100,
-                     None if error is None else {"mean_error_m": error}, now, now)
+    metrics = None if error is None else {"mean_error_m": error}
+    if metrics is not None and pooled is not None:
+        metrics["held_out_pooled"] = pooled
+    return ModelInfo(model_id, 1, "knn", {}, False, (), True, "ready", None, True, 100, metrics, now, now)
 
 
 def test_decisions_without_a_figure_to_compare():
@@ -67,3 +69,14 @@ def test_decisions_without_a_figure_to_compare():
     assert decide_activation("if_better", 3.0, _model(1, 3.0)).activated  # no worse is enough
     assert not decide_activation("never", 1.0, None).activated
     assert decide_activation("always", 9.0, _model(1, 1.0)).activated
+
+
+def test_a_pooled_figure_is_not_compared_with_one_split():
+    # a model trained before the pooled figures (no key) or on one split holds a figure of another kind
+    for old in (_model(1, 9.0), _model(1, 9.0, pooled=False)):
+        decision = decide_activation("if_better", 2.0, old, pooled=True)
+        assert not decision.activated and "not comparable" in decision.reason and "'always'" in decision.reason
+    assert not decide_activation("if_better", 2.0, _model(1, 9.0, pooled=True), pooled=False).activated
+    assert decide_activation("if_better", 2.0, _model(1, 9.0, pooled=True), pooled=True).activated
+    assert not decide_activation("if_better", 9.5, _model(1, 9.0, pooled=True), pooled=True).activated
+    assert decide_activation("if_better", 2.0, _model(1, 9.0), pooled=False).activated  # both from one split
