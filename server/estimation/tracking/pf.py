@@ -351,7 +351,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         walls,
         seed,
         *,
-        bias0_std_deg: float = selfcal.PF_BIAS0_STD_DEG,
+        bias0_std_deg: float = selfcal.BIAS0_STD_DEG,
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,

@@ -30,15 +30,8 @@ import numpy as np
 
 from server.estimation.types import Step
 
-#: prior standard deviation of the heading bias at a session's start (degrees): the ML σ of the
-#: per-walk bias of the gyro heading (the phones' heading since it replaced the Kalman one, whose
-#: spread gave the earlier 10°) on the even MSFT walks (``benchmarks/pdr_noise.py --heading gyro``:
-#: 15.0°; the odd walks 17.7°, one at −61°); kept for skpf, ekf, ukf after choosing on folds 0, 2
-#: and reporting on folds 1, 3 (README "Tracking design")
-BIAS0_STD_DEG = 15.0
-#: the PF's prior stays 10°: 15° won on folds 0, 2 (2.44 → 2.34 m over 3 seeds) but not on
-#: folds 1, 3 (2.81 → 2.82), the rule written before the runs
-PF_BIAS0_STD_DEG = 10.0
+#: prior standard deviation of the heading bias at a session's start (degrees)
+BIAS0_STD_DEG = 10.0
 #: random-walk standard deviation of the heading bias per step (degrees)
 BIAS_WALK_DEG = 1.0
 #: prior standard deviation of the step-length scale (1 = the phone's lengths are right)
