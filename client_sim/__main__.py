@@ -330,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plan-margin", type=float, default=0.0, help="grow the plan's stores by this much (m)")
     p.add_argument("--seed-salt", type=int, help="seed each session from its walk and this number (the sessions' "
                    "seed extension): two runs with the same salt use the same random draws walk by walk")
+    p.add_argument("--filter-params", help="tracker parameters per filter (the sessions' filter_params extension), "
+                   "JSON, e.g. '{\"pf\": {\"q\": 0.04}}': compare settings on the same walks (with --seed-salt, "
+                   "the same draws)")
     p.add_argument("--smoothed", action="store_true",
                    help="also score each session's smoothed track (GET .../track?smoothed=true)")
     p.add_argument("--url", help="use this server instead of starting one (then give the keys)")

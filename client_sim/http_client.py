@@ -144,8 +144,9 @@ class LocalizerClient:
         return await self.request("POST", f"{API}/sites/{site_id}/locate", body)
 
     async def open_session(self, site_id, filter: str, initial: dict | None = None, model_id=None,
-                           seed: int | None = None) -> dict:
-        """A new session; ``seed`` (an extension) fixes its tracker's random draws."""
+                           seed: int | None = None, filter_params: dict[str, float] | None = None) -> dict:
+        """A new session; ``seed`` (an extension) fixes its tracker's random draws, ``filter_params``
+        (an extension) override its tracker's defaults."""
         body: dict[str, Any] = {"site_id": site_id, "filter": filter}
         if initial is not None:
             body["initial"] = initial
@@ -153,6 +154,8 @@ class LocalizerClient:
             body["model_id"] = model_id
         if seed is not None:
             body["seed"] = seed
+        if filter_params:
+            body["filter_params"] = filter_params
         return await self.request("POST", f"{API}/sessions", body)
 
     async def post_batch(self, session_id, batch: dict, retries: int = 4) -> dict:

@@ -342,7 +342,8 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
 
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
-                        interval_s: float, smoothed: bool = False, seed_salt: int | None = None) -> dict:
+                        interval_s: float, smoothed: bool = False, seed_salt: int | None = None,
+                        filter_params: dict[str, float] | None = None) -> dict:
     w = p.walk
     init = None
     if initial:
@@ -351,7 +352,7 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
         if first:
             init["heading_deg"] = round(first[0].heading_deg, 2)
     seed = None if seed_salt is None else zlib.crc32(f"{w.name}|{seed_salt}".encode())
-    session = await device.open_session(site_id, flt, init, seed=seed)
+    session = await device.open_session(site_id, flt, init, seed=seed, filter_params=filter_params)
     batches = make_batches(steps, p.scans, w.t_start, w.t_end, interval_s)
     batch_rows = []
     for b in batches:
@@ -399,6 +400,8 @@ class Options:
     #: seed each session from its walk and this salt (the ``seed`` extension): runs of two settings
     #: with the same salt use the same draws walk by walk (None: the server's own seed per session)
     seed_salt: int | None = None
+    #: tracker parameters per filter name (the ``filter_params`` extension), e.g. {"pf": {"q": 0.04}}
+    filter_params: dict[str, dict[str, float]] | None = None
 
 
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
@@ -465,7 +468,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                     name = (flt if init else f"{flt} (no initial)") + ("" if plan == "none" else f" [plan: {plan}]")
                     try:
                         res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s,
-                                                  opt.smoothed, opt.seed_salt)
+                                                  opt.smoothed, opt.seed_salt,
+                                                  (opt.filter_params or {}).get(flt))
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -540,6 +544,19 @@ def markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def filter_params_arg(text: str | None) -> dict[str, dict[str, float]] | None:
+    """``--filter-params``: a JSON object of filter name → {parameter: number}."""
+    if not text:
+        return None
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CliError(f"--filter-params is not JSON: {exc}", EXIT_USAGE) from None
+    if not isinstance(value, dict) or not all(isinstance(v, dict) for v in value.values()):
+        raise CliError('--filter-params must map filter names to objects, e.g. \'{"pf": {"q": 0.04}}\'', EXIT_USAGE)
+    return value
+
+
 def main(a) -> int:
     """``python -m client_sim msft``: start a server (fresh SQLite in a temp dir, generated
     keys) unless ``--url``, run the evaluation, print the table, write ``--out``."""
@@ -579,7 +596,8 @@ def main(a) -> int:
                   heading=getattr(a, "heading", "gyro"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
                   plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)),
-                  seed_salt=getattr(a, "seed_salt", None))
+                  seed_salt=getattr(a, "seed_salt", None),
+                  filter_params=filter_params_arg(getattr(a, "filter_params", None)))
     for variant in opt.plans:
         if variant not in PLANS:
             raise CliError(f"unknown --plan {variant!r} (comma list of {', '.join(PLANS)})", EXIT_USAGE)

@@ -34,6 +34,9 @@ class SessionInfo:
     created_at: datetime
     last_seq: int
     track_length: int
+    #: the tracker parameters it was opened with, when any (read with one session: a list reads no
+    #: tracker state, and leaves them out)
+    filter_params: Mapping[str, float] | None = None
 
 
 @dataclass(frozen=True)

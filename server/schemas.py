@@ -11,6 +11,8 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    StrictFloat,
+    StrictInt,
     StringConstraints,
     field_validator,
     model_validator,
@@ -19,6 +21,7 @@ from pydantic import (
 from server.domain import Activation, undeclared_floors
 from server.estimation.fingerprint.registry import ALGORITHMS
 from server.estimation.tracking import tracker_names
+from server.estimation.tracking.tuning import params_doc
 
 #: ``wifi:<bssid>`` / ``ble:<uuid>:<major>:<minor>``, or a data set's name for a transmitter.
 TX_ID_PATTERN = (
@@ -309,6 +312,11 @@ class SessionIn(Strict):
         None, description="Extension. The tracker's random seed (a particle filter's draws): the same seed, "
         "model and batches give the same track, for replays and for comparing settings on the same draws. "
         "Default: derived from the session id.")
+    filter_params: Annotated[dict[Annotated[str, StringConstraints(max_length=64)], StrictInt | StrictFloat],
+                             Field(max_length=32)] | None = Field(
+        None, description="Extension. Numbers that override the tracker's defaults, by name; an unknown name, a "
+        "value out of range or a fraction where a count is meant is a 422 naming it. The session keeps them "
+        "(`GET /api/v1/sessions/{id}` echoes them). Per filter, with ranges and defaults: " + params_doc() + ".")
 
     @field_validator("filter")
     @classmethod
@@ -390,6 +398,9 @@ class SessionOut(BaseModel):
     created_at: datetime
     last_seq: int = Field(description="Highest batch seq applied (-1: none yet).")
     track_length: int = Field(description="Estimates in the track.")
+    filter_params: dict[str, float] | None = Field(
+        None, description="Extension. The tracker parameters the session was opened with, when it was given "
+        "any (absent: the defaults); session lists leave them out.")
 
 
 # --- service ---------------------------------------------------------------------------

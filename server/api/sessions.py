@@ -37,12 +37,13 @@ router = APIRouter(prefix="/api/v1/sessions", tags=["sessions"])
 _NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such session, or it was opened with another device key."}}
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionOut,
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SessionOut, response_model_exclude_unset=True,
              responses={404: {"description": "Unknown site."}, 422: {"description": "Bad filter, model or initial."}})
 def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> SessionOut:
     init = body.initial
     initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance, init.building)
-    return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial, body.seed))
+    return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial, body.seed,
+                                    body.filter_params))
 
 
 @router.post(
@@ -117,7 +118,7 @@ def list_sessions(
     return Response(orjson.dumps(body, option=orjson.OPT_UTC_Z), media_type="application/json")
 
 
-@router.get("/{session_id}", response_model=SessionOut, responses=_NOT_YOURS)
+@router.get("/{session_id}", response_model=SessionOut, response_model_exclude_unset=True, responses=_NOT_YOURS)
 def get_session(session_id: str, sessions: Sessions, principal: Device) -> SessionOut:
     return session_out(sessions.get(principal, session_id))
 
@@ -205,10 +206,12 @@ def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:
 
 
 def session_out(info: SessionInfo) -> SessionOut:
+    """The schema's session; ``filter_params`` only when the session was given any (the routes leave out unset fields)."""
     return SessionOut(
         id=info.id, site_id=info.site_id, filter=info.filter, model_id=info.model_id, status=info.status,
         estimate=None if info.estimate is None else estimate_out(info.estimate), created_at=info.created_at,
         last_seq=info.last_seq, track_length=info.track_length,
+        **({} if info.filter_params is None else {"filter_params": dict(info.filter_params)}),
     )
 
 

@@ -16,7 +16,7 @@ the per-process ``SiteContexts`` while that revision holds) and one write transa
 from __future__ import annotations
 
 import uuid
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -30,6 +30,7 @@ from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
+from server.estimation.tracking.tuning import BadParam, check_params
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
@@ -91,10 +92,18 @@ class SessionService:
     def open(
         self, principal: Principal, site_id: int, filter: str, model_id: int | None = None,
         initial: InitialPosition | None = None, seed: int | None = None,
+        filter_params: Mapping[str, float] | None = None,
     ) -> SessionInfo:
-        """A new session; ``seed`` fixes its tracker's random draws (default: from the session id)."""
+        """A new session; ``seed`` fixes its tracker's random draws (default: from the session id),
+        ``filter_params`` override its tracker's defaults (``tracking.tuning``)."""
+        try:
+            params = check_params(filter, dict(filter_params or {}))
+        except BadParam as exc:
+            raise Invalid([{"field": "filter_params" if exc.name is None else f"filter_params.{exc.name}",
+                            "msg": str(exc)}]) from None
         session_id = str(uuid.uuid4())
-        est = SessionEstimator(filter, seed=uuid.UUID(session_id).int % 2**32 if seed is None else seed)
+        est = SessionEstimator(filter, seed=uuid.UUID(session_id).int % 2**32 if seed is None else seed,
+                               tracker_params=params)
         with self.db.transaction() as s:
             if site_store.site_settings(s, site_id) is None:
                 raise NotFound(f"site {site_id} does not exist")

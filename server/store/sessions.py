@@ -88,6 +88,7 @@ def _info(row: TrackingSession) -> SessionInfo:
         id=row.id, site_id=row.site_id, owner_key=row.owner_key, filter=row.filter, model_id=row.model_id,
         status=row.status, estimate=None if stored is None else Estimate.from_dict(stored),
         created_at=row.created_at, last_seq=row.last_seq, track_length=row.track_length,
+        filter_params=dict((row.state or {}).get("tracker_params") or {}) or None,
     )
 
 

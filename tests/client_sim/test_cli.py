@@ -121,3 +121,11 @@ def test_msft_only_folds_that_are_not_fold_numbers_are_one_line_and_exit_2(capsy
     argv = ["msft", str(tmp_path), "--folds", "4", "--only-folds", only]  # refused before any server starts
     assert main(argv) == 2
     assert one_error(capsys).startswith(f"--only-folds {only!r}")
+
+
+@pytest.mark.parametrize("params", ["{pf", "[1]", '{"pf": 1}'])
+def test_msft_filter_params_that_are_not_an_object_of_objects_are_one_line_and_exit_2(capsys, tmp_path, params):
+    (tmp_path / "walk.txt").write_text("")
+    argv = ["msft", str(tmp_path), "--folds", "4", "--filter-params", params]  # refused before any server starts
+    assert main(argv) == 2
+    assert one_error(capsys).startswith("--filter-params")

@@ -243,7 +243,7 @@ def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200,
     the weak points come from those rows instead; the timings stay ``model``'s on ``test``."""
     metrics, held = _measure(model, stratified_sample(test, MAX_HELD_OUT), n_single, 0)
     used_pooled = pooled is not None and len(pooled.residuals) > 0
-    if used_pooled:
+    if pooled is not None and used_pooled:
         held, metrics = pooled, pooled.scored(metrics)
     if held is None:
         nan = NisSummary(float("nan"), float("nan"))

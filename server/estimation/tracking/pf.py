@@ -24,8 +24,8 @@ strong reading of a far beacon does not leave a single particle alive.
 
 With ``min_particles`` below ``n_particles`` the particle count adapts (KLD-sampling,
 ``resampling.kld_count``): each resampling draws as many particles as the cloud's spread
-needs, between the two; equal values (the default, see ``KLD_MIN_PARTICLES``) keep a fixed
-count; a reset starts with ``n_particles``.
+needs, between the two; equal values (the default: ``min_particles`` is ``n_particles`` unless
+given) keep a fixed count; a reset starts with ``n_particles``.
 Randomness comes from the tracker's own PCG64 generator, stored in ``to_dict()`` with
 the particles and weights packed a byte per number (``packed``): each column on a grid of
 256 values spanning the cloud (resolution ≈ 0.8 % of its spread; refitted whenever the
@@ -72,8 +72,8 @@ from server.estimation.types import Fix, Step
 #: fixed 1,000 particles'), it then cost
 #: 27 % more error than PF-1000 on the held-out scenarios with wknn fixes (2.74 against 2.16 m;
 #: +3–4 % with knn and unbiased fixes): small clouds collapse onto a wrong fix. The default
-#: went back to a fixed 1,000 after that held-out run.
-KLD_MIN_PARTICLES = 1000
+#: went back to a fixed 1,000 after that held-out run: ``min_particles`` defaults to
+#: ``n_particles``.
 KLD_BIN_M = 1.0
 KLD_EPSILON = 0.15
 
@@ -110,7 +110,7 @@ class ParticleFilterXYTracker(Tracker):
         q: float = 0.01,
         resample_threshold: float = 0.5,
         max_range_m: float = 3.0,
-        min_particles: int = KLD_MIN_PARTICLES,
+        min_particles: int | None = None,
         kld_bin_m: float = KLD_BIN_M,
         kld_epsilon: float = KLD_EPSILON,
     ) -> None:
@@ -118,6 +118,8 @@ class ParticleFilterXYTracker(Tracker):
         Tracker.__init__(self, None, None, walls=walls, seed=seed)
         if n_particles < 2:
             raise ValueError("n_particles must be at least 2")
+        if min_particles is None:
+            min_particles = n_particles
         if not 2 <= min_particles <= n_particles:
             raise ValueError("min_particles must be between 2 and n_particles")
         if kld_bin_m <= 0 or kld_epsilon <= 0:

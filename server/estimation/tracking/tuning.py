@@ -1,0 +1,104 @@
+"""The tracker parameters a session may set, and their checks.
+
+A session's ``filter_params`` (an API extension) override a tracker's defaults: an operator
+tunes a site's trackers, an evaluation compares settings on the same walks and seeds. Only
+numeric parameters listed in ``TUNABLE`` may be set, each within a range that keeps the
+tracker well defined and a session's cost bounded (a PF's particle count is its CPU per
+step and its stored state per batch); which of them a filter takes is what its default
+instance records in ``Tracker.params``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from server.estimation.tracking.base import make_tracker, tracker_names
+
+
+@dataclass(frozen=True)
+class Tunable:
+    """A parameter's inclusive range; ``integer``: it counts something."""
+
+    lo: float
+    hi: float
+    unit: str
+    integer: bool = False
+
+
+#: every parameter a session may set, by name (the same name means the same thing in every filter)
+TUNABLE: dict[str, Tunable] = {
+    "q": Tunable(0.0, 100.0, "m² of position jitter per step"),
+    "r": Tunable(1e-4, 1e4, "m² fix variance (kf)"),
+    "n_particles": Tunable(2, 10_000, "particles", integer=True),
+    "min_particles": Tunable(2, 10_000, "particles, KLD-sampling's lower bound", integer=True),
+    "kld_bin_m": Tunable(0.01, 100.0, "m"),
+    "kld_epsilon": Tunable(0.001, 1.0, ""),
+    "resample_threshold": Tunable(0.0, 1.0, "share of particles (effective sample size)"),
+    "max_range_m": Tunable(0.0, 100.0, "m, longest beacon range used"),
+    "wall_margin_m": Tunable(0.0, 5.0, "m"),
+    "alpha": Tunable(1e-3, 10.0, "(sigma-point spread)"),
+    "beta": Tunable(0.0, 10.0, ""),
+    "kappa": Tunable(0.0, 10.0, ""),
+    "bias0_std_deg": Tunable(0.0, 180.0, "° heading-bias prior"),
+    "bias_walk_deg": Tunable(0.0, 45.0, "° heading-bias random walk per step"),
+    "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
+    "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
+    "box_half_width_m": Tunable(0.1, 1000.0, "m (fkf)"),
+    "reset_every": Tunable(1, 10_000, "steps (fkf)", integer=True),
+    "lost_after": Tunable(1, 1000, "fixes (fkf)", integer=True),
+}
+
+
+class BadParam(ValueError):
+    """A parameter that cannot be set; ``name`` None: the parameters together (a tracker's cross-check)."""
+
+    def __init__(self, name: str | None, msg: str):
+        super().__init__(msg)
+        self.name = name
+
+
+@cache
+def tunable_params(filter: str) -> dict[str, Any]:
+    """The parameters ``filter`` takes that a session may set, with their defaults."""
+    defaults = make_tracker(filter, [0.0, 0.0], np.eye(2), seed=0).params
+    return {k: v for k, v in defaults.items() if k in TUNABLE}
+
+
+def check_params(filter: str, params: dict[str, Any]) -> dict[str, float | int]:
+    """``params`` for ``filter`` as its constructor takes them; ``BadParam`` naming the first
+    parameter that is unknown, not a finite number, not whole where it counts, out of range,
+    or inconsistent with the others (the tracker's own check, e.g. min_particles > n_particles)."""
+    if not params:
+        return {}
+    known = tunable_params(filter)
+    out: dict[str, float | int] = {}
+    for name, value in params.items():
+        if name not in known:
+            raise BadParam(name, f"{name!r} is not a parameter of {filter} (one of {', '.join(sorted(known))})")
+        spec = TUNABLE[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                isinstance(value, float) and not math.isfinite(value)):
+            raise BadParam(name, f"{name} must be a finite number, not {str(value)[:40]}")
+        if not spec.lo <= value <= spec.hi:  # (an int of any size compares exactly)
+            raise BadParam(name, f"{name} must be between {spec.lo:g} and {spec.hi:g}, not {str(value)[:40]}")
+        if spec.integer and isinstance(value, float) and not value.is_integer():
+            raise BadParam(name, f"{name} must be a whole number, not {value!r}")
+        out[name] = int(value) if spec.integer else float(value)
+    try:
+        make_tracker(filter, [0.0, 0.0], np.eye(2), seed=0, **out)  # the tracker's own cross-checks
+    except ValueError as exc:
+        raise BadParam(None, str(exc)) from None
+    return out
+
+
+def params_doc() -> str:
+    """The parameters each filter takes (for the API schema's description)."""
+    lines = [f"`{f}`: " + ", ".join(f"{k} ({TUNABLE[k].lo:g}–{TUNABLE[k].hi:g}, default {v:g})"
+                                     for k, v in tunable_params(f).items())
+             for f in tracker_names()]
+    return "; ".join(lines)
