@@ -398,7 +398,7 @@ class SessionOut(BaseModel):
     created_at: datetime
     last_seq: int = Field(description="Highest batch seq applied (-1: none yet).")
     track_length: int = Field(description="Estimates in the track.")
-    filter_params: dict[str, float] | None = Field(
+    filter_params: dict[str, int | float] | None = Field(
         None, description="Extension. The tracker parameters the session was opened with, when it was given "
         "any (absent: the defaults); session lists leave them out.")
 

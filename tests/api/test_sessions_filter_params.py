@@ -23,7 +23,7 @@ def _track(device, site_id: int, filter: str = "pf", **extra) -> list[dict]:
 def test_params_are_kept_echoed_and_change_the_track(device, site):  # noqa: F811
     params = {"n_particles": 300, "q": 0.2}
     opened = open_session(device, site, "pf", filter_params=params)
-    assert opened["filter_params"] == params
+    assert opened["filter_params"] == params and isinstance(opened["filter_params"]["n_particles"], int)
     assert device.get(f"/api/v1/sessions/{opened['id']}").json()["filter_params"] == params
     assert "filter_params" not in open_session(device, site, "pf")  # the defaults
     listed = device.get("/api/v1/sessions").json()
@@ -83,4 +83,4 @@ def test_nan_is_refused(device, site):  # noqa: F811
 
 def test_the_openapi_schema_lists_each_filters_parameters(anonymous):
     prop = anonymous.get("/openapi.json").json()["components"]["schemas"]["SessionIn"]["properties"]["filter_params"]
-    assert "Extension" in prop["description"] and "`pf`: n_particles (2–10000, default 1000)" in prop["description"]
+    assert "Extension" in prop["description"] and "`pf`: n_particles (particles, 2–10000, default 1000)" in prop["description"]

@@ -22,7 +22,7 @@ from server.estimation.tracking.base import make_tracker, tracker_names
 
 @dataclass(frozen=True)
 class Tunable:
-    """A parameter's inclusive range; ``integer``: it counts something."""
+    """A parameter's inclusive range and what it measures; ``integer``: it counts something."""
 
     lo: float
     hi: float
@@ -35,15 +35,15 @@ TUNABLE: dict[str, Tunable] = {
     "q": Tunable(0.0, 100.0, "m² of position jitter per step"),
     "r": Tunable(1e-4, 1e4, "m² fix variance (kf)"),
     "n_particles": Tunable(2, 10_000, "particles", integer=True),
-    "min_particles": Tunable(2, 10_000, "particles, KLD-sampling's lower bound", integer=True),
-    "kld_bin_m": Tunable(0.01, 100.0, "m"),
-    "kld_epsilon": Tunable(0.001, 1.0, ""),
-    "resample_threshold": Tunable(0.0, 1.0, "share of particles (effective sample size)"),
+    "min_particles": Tunable(2, 10_000, "KLD-sampling's fewest particles", integer=True),
+    "kld_bin_m": Tunable(0.01, 100.0, "KLD-sampling's bin, m"),
+    "kld_epsilon": Tunable(0.001, 1.0, "KLD-sampling's error bound"),
+    "resample_threshold": Tunable(0.0, 1.0, "resample below this share of effective particles"),
     "max_range_m": Tunable(0.0, 100.0, "m, longest beacon range used"),
-    "wall_margin_m": Tunable(0.0, 5.0, "m"),
-    "alpha": Tunable(1e-3, 10.0, "(sigma-point spread)"),
-    "beta": Tunable(0.0, 10.0, ""),
-    "kappa": Tunable(0.0, 10.0, ""),
+    "wall_margin_m": Tunable(0.0, 5.0, "m kept from a wall"),
+    "alpha": Tunable(1e-3, 10.0, "sigma-point spread"),
+    "beta": Tunable(0.0, 10.0, "sigma-point prior weight"),
+    "kappa": Tunable(0.0, 10.0, "sigma-point secondary scaling"),
     "bias0_std_deg": Tunable(0.0, 180.0, "° heading-bias prior"),
     "bias_walk_deg": Tunable(0.0, 45.0, "° heading-bias random walk per step"),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
@@ -98,7 +98,9 @@ def check_params(filter: str, params: dict[str, Any]) -> dict[str, float | int]:
 
 def params_doc() -> str:
     """The parameters each filter takes (for the API schema's description)."""
-    lines = [f"`{f}`: " + ", ".join(f"{k} ({TUNABLE[k].lo:g}–{TUNABLE[k].hi:g}, default {v:g})"
-                                     for k, v in tunable_params(f).items())
-             for f in tracker_names()]
-    return "; ".join(lines)
+    def one(name: str, default: float) -> str:
+        spec = TUNABLE[name]
+        unit = f"{spec.unit}, " if spec.unit else ""
+        return f"{name} ({unit}{spec.lo:g}–{spec.hi:g}, default {default:g})"
+
+    return "; ".join(f"`{f}`: " + ", ".join(one(k, v) for k, v in tunable_params(f).items()) for f in tracker_names())
