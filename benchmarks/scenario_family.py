@@ -241,6 +241,7 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
     truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
     truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
     errors, nees, innovations, track, state_bytes = [], [], [], [], []
+    states: list = []  # per track estimate, the tracker's whole state (as the server stores it)
     t_end = batch_s
     while steps or scans:
         bs = [s for s in steps if s.t < t_end]
@@ -253,6 +254,7 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
         out = est.apply_batch(bs, bc, fixes, site)
         innovations += est.innovations
         track += out.estimates
+        states += out.states or [None] * len(out.estimates)
         for e in out.estimates:
             d = np.array([e.x, e.y]) - truth_by_t[e.t]
             errors.append(float(np.hypot(*d)))
@@ -260,7 +262,8 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
                 nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
         t_end += batch_s
     nis = [d2 for d2, _ in innovations]
-    smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1])) for e in smooth_track(track)]
+    smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1]))
+                for e in smooth_track(track, None, states)]
     return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis, "refused": sum(not ok for _, ok in innovations),
             "fixes": len(innovations), "state_bytes": state_bytes, "bias_deg": getattr(est.tracker, "heading_bias_deg", None)}
 

@@ -261,3 +261,5 @@ class TrackEstimate(Base):
     floor: Mapped[int] = mapped_column(Integer)
     covariance: Mapped[list[Any]] = mapped_column()
     source: Mapped[str] = mapped_column(String(10))  # "step" | "scan" | "init"
+    #: a self-calibrating tracker's whole state here (``FullState.to_dict``), for the smoother; NULL otherwise
+    state: Mapped[dict[str, Any] | None] = mapped_column(JSON)

@@ -31,6 +31,7 @@ from server.estimation.tracking import (
     ParticleFilterXYTracker,
     apply_snap,
     make_tracker,
+    selfcal,
     tracker_from_dict,
 )
 from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
@@ -43,6 +44,7 @@ from server.estimation.types import (
     CrowdCandidate,
     Estimate,
     Fix,
+    FullState,
     LateInput,
     LateInputs,
     NoFix,
@@ -119,6 +121,9 @@ class SessionEstimator:
         self.landmarks = LandmarkCorrector({})
         self.last_t: float | None = None
         self.estimate: Estimate | None = None
+        #: a self-calibrating tracker's whole state at ``estimate`` (not stored with the session:
+        #: with the track, for the smoother)
+        self.full_state: FullState | None = None
         #: fixes refused by the innovation gate since the last accepted one
         self.gated_in_a_row = 0
         #: how much this session's fixes scatter against their own covariance (fixnoise.py)
@@ -141,10 +146,13 @@ class SessionEstimator:
         self.floors = FloorTracker(floor_key(building, floor))
         return self._record(t, source)
 
-    def _record(self, t: float | None, source: str) -> Estimate:
+    def _record(self, t: float | None, source: str, step: Step | None = None) -> Estimate:
+        """The tracker's estimate now, and (``full_state``) a self-calibrating tracker's whole state."""
         assert self.tracker is not None and self.floors is not None
         building, level = building_level(self.floors.floor)
         self.estimate = Estimate.of(t, self.tracker.mean, self.tracker.covariance, level, source, building)
+        self.full_state = (FullState.of(self.tracker.state_mean, self.tracker.state_covariance, step)
+                           if isinstance(self.tracker, selfcal.Calibrating) else None)
         return self.estimate
 
     def search_area(self) -> Area | None:
@@ -179,6 +187,7 @@ class SessionEstimator:
                 raise LateInputs(late, self.last_t)
         init_undated = self.estimate is not None and self.estimate.source == "init" and self.estimate.t is None
         estimates: list[Estimate] = []
+        states: list[FullState | None] = []
         skipped: list[ScanNote] = []
         rejected: list[ScanNote] = []
         crowd: list[CrowdCandidate] = []
@@ -190,6 +199,7 @@ class SessionEstimator:
                 if e is not None:
                     applied_steps += 1
                     estimates.append(e)
+                    states.append(self.full_state)
                 continue
             try:
                 fix = self._fix(item, fixes, site)
@@ -201,6 +211,7 @@ class SessionEstimator:
             e, refused = self.scan(item, fix, site)
             applied_scans += 1
             estimates.append(e)
+            states.append(self.full_state)
             if refused is not None:
                 rejected.append(ScanNote(i, refused))
             elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
@@ -211,6 +222,7 @@ class SessionEstimator:
             estimates=tuple(estimates), estimate=self.estimate, applied_steps=applied_steps,
             applied_scans=applied_scans, skipped_scans=tuple(skipped), rejected_fixes=tuple(rejected),
             crowd=tuple(crowd), init_t=ordered[0][2].t if init_undated and ordered else None,
+            states=tuple(states),
         )
 
     def _use_plan(self, site: SiteMap) -> None:
@@ -258,7 +270,7 @@ class SessionEstimator:
         if self.tracker is None:
             return None
         self.tracker.predict(step)
-        return self._record(step.t, "step")
+        return self._record(step.t, "step", step)
 
     def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on

@@ -115,6 +115,46 @@ class Estimate:
 
 
 @dataclass(frozen=True)
+class FullState:
+    """A self-calibrating tracker's whole state at one track estimate, kept for the smoother:
+    the mean [x, y, b, s], its 4 × 4 covariance, and for a step estimate the step (length m,
+    heading °) that predicted it (``tracking.smoother``: an RTS over the whole state bends the
+    path before a heading bias was learned as that bias, not as independent noise per step)."""
+
+    mean: tuple[float, ...]
+    covariance: tuple[tuple[float, ...], ...]
+    step: tuple[float, float] | None = None
+
+    @classmethod
+    def of(cls, mean, cov, step: Step | None = None) -> FullState:
+        """Symmetric (a sample covariance may not be to the last bit): stored as its upper triangle."""
+        c = np.asarray(cov, float)
+        c = 0.5 * (c + c.T)
+        return cls(tuple(float(v) for v in mean), tuple(tuple(float(v) for v in row) for row in c),
+                   None if step is None else (float(step.length_m), float(step.heading_deg)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored form: the covariance's upper triangle, row by row."""
+        n = len(self.mean)
+        out: dict[str, Any] = {"m": list(self.mean), "P": [self.covariance[i][j] for i in range(n) for j in range(i, n)]}
+        if self.step is not None:
+            out["u"] = list(self.step)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> FullState:
+        n = len(d["m"])
+        upper = iter(d["P"])
+        P = np.zeros((n, n))
+        for i in range(n):
+            for j in range(i, n):
+                P[i, j] = P[j, i] = float(next(upper))
+        u = d.get("u")
+        return cls(tuple(float(v) for v in d["m"]), tuple(tuple(float(v) for v in row) for row in P),
+                   None if u is None else (float(u[0]), float(u[1])))
+
+
+@dataclass(frozen=True)
 class Beacon:
     """A transmitter with a known position; radio parameters make ranges possible. A beacon
     without a floor is heard on every floor of every building."""
@@ -204,6 +244,8 @@ class BatchOutcome:
     crowd: tuple[CrowdCandidate, ...]
     #: the time the initial estimate (given without one) took from this batch's first input
     init_t: float | None = None
+    #: per estimate, a self-calibrating tracker's whole state (``FullState``; None for the others)
+    states: tuple[FullState | None, ...] = ()
 
 
 @dataclass(frozen=True)

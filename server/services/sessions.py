@@ -120,7 +120,8 @@ class SessionService:
                 walls = site_store.floor_walls(s, site_id, initial.floor, initial.building)
                 estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init",
                                            initial.building))
-            return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates)
+            return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates,
+                                     [est.full_state] if estimates else [])
 
     def list_sessions(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionInfo]:
         """The caller's sessions (every session for an admin key), newest first."""
@@ -145,10 +146,11 @@ class SessionService:
             row = _visible(store.feed_state(s.connection(), session_id), principal, session_id)
             track = store.track(s, session_id)
             refused = store.refused_fix_indexes(s, session_id)
+            states = store.track_states(s, session_id) if smoothed else None
         if not smoothed:
             return track, refused
         # the floors' walkable areas as the batches use them (the site's context, cached by revision)
-        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable), refused
+        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable, states), refused
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
@@ -249,6 +251,7 @@ class SessionService:
                 if store.save_batch(
                     conn, session_id, expected_last_seq=row.last_seq, state=est.to_dict(), answer=answer,
                     first_idx=row.track_length, estimates=outcome.estimates, init_t=outcome.init_t,
+                    states=outcome.states,
                 ):
                     _crowdsource(conn, row.site_id, outcome.crowd)
                     return answer

@@ -15,7 +15,7 @@ from sqlalchemy import Connection, Table, and_, bindparam, func, insert, select,
 from sqlalchemy.orm import Session
 
 from server.domain import BatchAnswer, FeedState, SessionInfo
-from server.estimation.types import CrowdPoint, Estimate
+from server.estimation.types import CrowdPoint, Estimate, FullState
 from server.store._direct import DirectStatement
 from server.store._results import tuples
 from server.tables import Fingerprint, SessionBatch, Site, TrackEstimate, TrackingSession, utcnow
@@ -92,11 +92,15 @@ def _info(row: TrackingSession) -> SessionInfo:
     )
 
 
-def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: Sequence[Estimate]) -> list[dict]:
+def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: Sequence[Estimate],
+                   states: Sequence[FullState | None] = ()) -> list[dict]:
+    """Rows of ``estimates``, each with its tracker's whole state when ``states`` has one (NULL otherwise)."""
+    full = list(states) + [None] * (len(estimates) - len(states))
     return [
         {"session_id": session_id, "idx": first_idx + i, "seq": seq, "t": e.t, "x": e.x, "y": e.y, "floor": e.floor,
-         "building": e.building, "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
-        for i, e in enumerate(estimates)
+         "building": e.building, "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source,
+         "state": None if f is None else f.to_dict()}
+        for i, (e, f) in enumerate(zip(estimates, full, strict=False))
     ]
 
 
@@ -116,7 +120,7 @@ def _estimate(t: float | None, x: float, y: float, floor: int, c: list[list[floa
 
 def add_session(
     s: Session, session_id: str, site_id: int, owner_key: str, filter: str, model_id: int | None,
-    state: dict, estimates: Sequence[Estimate],
+    state: dict, estimates: Sequence[Estimate], states: Sequence[FullState | None] = (),
 ) -> SessionInfo:
     """A new open session; ``estimates`` (the initial position, if given) start its track."""
     row = TrackingSession(
@@ -126,7 +130,7 @@ def add_session(
     s.add(row)
     s.flush()
     if estimates:
-        _INSERT_ESTIMATES.execute_many(s.connection(), _estimate_rows(session_id, 0, None, estimates))
+        _INSERT_ESTIMATES.execute_many(s.connection(), _estimate_rows(session_id, 0, None, estimates, states))
     return _info(row)
 
 
@@ -190,6 +194,13 @@ def track(s: Session, session_id: str) -> list[Estimate]:
         select(*_ESTIMATE_COLUMNS).where(_ESTIMATES.c.session_id == session_id).order_by(_ESTIMATES.c.idx)
     )
     return [_estimate(*row) for row in tuples(rows)]
+
+
+def track_states(s: Session, session_id: str) -> list[FullState | None]:
+    """Per estimate of the track (in order), the tracker's whole state stored with it (None: a tracker
+    without one, or an estimate stored before states were)."""
+    rows = s.execute(select(_ESTIMATES.c.state).where(_ESTIMATES.c.session_id == session_id).order_by(_ESTIMATES.c.idx))
+    return [None if d is None else FullState.from_dict(d) for (d,) in tuples(rows)]
 
 
 def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:
@@ -304,6 +315,7 @@ def save_batch(
     first_idx: int,
     estimates: Sequence[Estimate],
     init_t: float | None = None,
+    states: Sequence[FullState | None] = (),
 ) -> bool:
     """Compare-and-set: store the batch's outcome only if the session is still open at ``expected_last_seq``.
 
@@ -320,7 +332,7 @@ def save_batch(
     _INSERT_ANSWER.execute(
         conn, {"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict(), "created_at": utcnow()})
     if estimates:
-        _INSERT_ESTIMATES.execute_many(conn, _estimate_rows(session_id, first_idx, answer.seq, estimates))
+        _INSERT_ESTIMATES.execute_many(conn, _estimate_rows(session_id, first_idx, answer.seq, estimates, states))
     if init_t is not None:  # the initial estimate takes the time of the session's first input
         conn.execute(_DATE_INITIAL, {"sid": session_id, "init_t": init_t})
     return True

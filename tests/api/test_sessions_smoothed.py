@@ -9,10 +9,12 @@ from collections import deque
 
 import numpy as np
 import pytest
+from sqlalchemy import text
 
 from server.api.deps import session_service
 from server.errors import Invalid
-from server.estimation.types import Fix
+from server.estimation.tracking.smoother import smooth_track
+from server.estimation.types import Estimate, Fix
 from server.schemas import EstimateOut
 from server.services.sessions import SessionService
 from tests.api.test_sessions import FLOORS, TRANSMITTERS, Located
@@ -50,12 +52,13 @@ def site(admin) -> int:
     return answer.json()["id"]
 
 
-def _walk(device, site, scripted, outlier_at: int | None = None) -> tuple[str, dict[float, tuple[float, float]]]:
+def _walk(device, site, scripted, outlier_at: int | None = None,
+          filter: str = "kf") -> tuple[str, dict[float, tuple[float, float]]]:
     """A walk east from (1, 2) along y = 2 whose steps say 8° left of the truth and 10 % long
     (PDR drift), with a fix (σ 1 m) every 4 steps; returns the session id and the truth at each
     input time."""
     rng = np.random.default_rng(7)
-    sid = device.post("/api/v1/sessions", json={"site_id": site, "filter": "kf",
+    sid = device.post("/api/v1/sessions", json={"site_id": site, "filter": filter,
                                                 "initial": {"x": 1.0, "y": 2.0, "floor": 0}}).json()["id"]
     truth = {0.0: (1.0, 2.0)}
     steps, scans = [], []
@@ -173,3 +176,31 @@ def test_refused_fix_marks_survive_paging(device, site, scripted, limit):
     marked = next(i for i, e in enumerate(track) if "fix_refused" in e)
     page = device.get(f"/api/v1/sessions/{sid}/track", params={"since": marked - 1, "limit": 1}).json()
     assert page == [track[marked]] and page[0]["fix_refused"] is True
+
+
+def _estimates(track: list[dict]) -> list[Estimate]:
+    return [Estimate(e["t"], e["x"], e["y"], e["floor"], tuple(map(tuple, e["covariance"])), e["source"], e["building"])
+            for e in track]
+
+
+def test_a_self_calibrating_session_is_smoothed_over_its_whole_state(device, site, scripted, live_server):
+    """ekf on the biased walk: the stored states make the smoother bend the path before the bias
+    was learned as that bias — better than the live track and than smoothing the position alone
+    (what a track stored without states gets: shown by removing them)."""
+    sid, truth = _walk(device, site, scripted, filter="ekf")
+    live = device.get(f"/api/v1/sessions/{sid}/track").json()
+    smoothed = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
+    marginal = [e.to_dict() for e in smooth_track(_estimates(live))]
+    live_err, full_err, marginal_err = (_mean_error(x, truth) for x in (live, smoothed, marginal))
+    print(f"mean error: live {live_err:.2f}, position-only smoothing {marginal_err:.2f}, whole state {full_err:.2f} m")
+    assert full_err < marginal_err < live_err
+    with live_server.app.state.db.transaction() as s:
+        s.execute(text("UPDATE track_estimates SET state = NULL WHERE session_id = :sid"), {"sid": sid})
+    old = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
+    assert _same(old, marginal)
+
+
+def _same(a: list[dict], b: list[dict]) -> bool:
+    return len(a) == len(b) and all(
+        x["t"] == y["t"] and x["source"] == y["source"] and math.isclose(x["x"], y["x"], abs_tol=1e-9)
+        and math.isclose(x["y"], y["y"], abs_tol=1e-9) for x, y in zip(a, b, strict=True))

@@ -3,9 +3,11 @@ EKF, and better than the live track on a simulated walk."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from filterpy.kalman import KalmanFilter
 
 from server.estimation.tracking import make_tracker
@@ -126,3 +128,80 @@ def test_smoothed_positions_stay_in_the_floors_walkable_area_and_nothing_else_mo
     np.testing.assert_array_equal(xy_kept[inside], xy_plain[inside])
     assert [e.covariance for e in kept] == [e.covariance for e in plain]
     assert smooth_track(track, {(0, 1): corridor}) == plain
+
+
+def _full_state_track(n: int = 12, seed: int = 4):
+    """A synthetic stored track of a self-calibrating filter: per time index a step estimate
+    carrying the predicted state x⁻ = F x (F the step's Jacobian at the filtered x, so the model is
+    linear and filterpy's RTS is exact) and P⁻ = F P Fᵀ + Q, then a scan estimate with some
+    filtered state; the first index is the initial estimate."""
+    from server.estimation.tracking import selfcal
+    from server.estimation.types import FullState
+
+    rng = np.random.default_rng(seed)
+
+    def spd(scale: float) -> np.ndarray:
+        A = rng.normal(0, 1, (4, 4)) * scale
+        return A @ A.T + np.diag([0.5, 0.5, 0.01, 0.001])
+
+    xf = [np.array([0.0, 0.0, 0.1, 1.0])]
+    Pf = [spd(0.2)]
+    Fs, Qs, track, states = [np.eye(4)], [np.zeros((4, 4))], [], []
+    track.append(Estimate.of(0.0, xf[0][:2], Pf[0][:2, :2], 0, "init"))
+    states.append(FullState.of(xf[0], Pf[0]))
+    for k in range(1, n):
+        step = Step(float(k), 0.7 + 0.05 * rng.normal(), float(rng.uniform(0, 360)))
+        F, _ = selfcal.jacobians(xf[-1], step.length_m, np.radians(step.heading_deg))
+        Q = spd(0.1)
+        xp, Pp = F @ xf[-1], F @ Pf[-1] @ F.T + Q
+        track.append(Estimate.of(float(k), xp[:2], Pp[:2, :2], 0, "step"))
+        states.append(FullState.of(xp, Pp, step))
+        x, P = xp + rng.normal(0, 0.3, 4) * [1, 1, 0.05, 0.01], spd(0.15)  # some update's outcome
+        track.append(Estimate.of(k + 0.5, x[:2], P[:2, :2], 0, "scan"))
+        states.append(FullState.of(x, P))
+        xf.append(x)
+        Pf.append(P)
+        Fs.append(F)
+        Qs.append(Q)
+    return track, states, np.array(xf), np.array(Pf), Fs, Qs
+
+
+def test_the_full_state_smoother_equals_filterpy_rts_over_the_whole_state():
+    track, states, xf, Pf, Fs, Qs = _full_state_track()
+    xs_ref, Ps_ref, _, _ = KalmanFilter(dim_x=4, dim_z=2).rts_smoother(xf, Pf, Fs=Fs, Qs=Qs)
+    smoothed = smooth_track(track, None, states)
+    assert [(e.t, e.source) for e in smoothed] == [(e.t, e.source) for e in track]
+    for k in range(len(xf)):
+        for i in ([0] if k == 0 else [2 * k - 1, 2 * k]):  # every estimate of index k gets its smoothed state
+            np.testing.assert_allclose([smoothed[i].x, smoothed[i].y], xs_ref[k][:2], atol=1e-8)
+            np.testing.assert_allclose(np.array(smoothed[i].covariance), Ps_ref[k][:2, :2], atol=1e-8)
+    # the position marginal alone (what a track without states gets) is another answer
+    marginal = smooth_track(track)
+    assert max(abs(a.x - b.x) + abs(a.y - b.y) for a, b in zip(marginal, smoothed, strict=True)) > 1e-3
+
+
+def test_a_run_with_an_estimate_without_its_state_is_smoothed_over_the_position():
+    track, states, *_ = _full_state_track()
+    states[5] = None  # e.g. stored before the states were
+    assert smooth_track(track, None, states) == smooth_track(track)
+
+
+def test_the_session_records_the_whole_state_of_a_self_calibrating_tracker_only():
+    from server.estimation.session import SessionEstimator
+    from server.estimation.types import SiteMap
+
+    walk = simulate_walk(seed=2, legs=((0.0, 6),))
+    steps = [e for e in walk.events if isinstance(e, Step)]
+    for name, has in (("ekf", True), ("pf", True), ("kf", False), ("ekf-xy", False)):
+        est = SessionEstimator(name, seed=1)
+        est.start(walk.truth[0], None, 0, [], None, "init")
+        out = est.apply_batch(steps, [], None, SiteMap())
+        assert len(out.states) == len(out.estimates) == len(steps)
+        if not has:
+            assert all(s is None for s in out.states), name
+            continue
+        for e, s, step in zip(out.estimates, out.states, steps, strict=True):
+            assert s is not None and s.step == (step.length_m, step.heading_deg)
+            assert (e.x, e.y) == pytest.approx(s.mean[:2]) and np.array(e.covariance) == pytest.approx(
+                np.array(s.covariance)[:2, :2])
+            assert type(s).from_dict(json.loads(json.dumps(s.to_dict()))) == s  # stored and read back exactly

@@ -144,6 +144,10 @@ class Calibrating:
         raise NotImplementedError
 
     @property
+    def state_covariance(self) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    @property
     def heading_bias_deg(self) -> float:
         return math.degrees(float(self.state_mean[2]))
 

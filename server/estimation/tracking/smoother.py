@@ -12,13 +12,21 @@ moving as x_{k+1} = x_k + u_k (F = I),
     P_{k|N} = P_{k|k} + C_k (P_{k+1|N} − P_{k+1|k}) C_kᵀ.
 
 This is the exact RTS smoother of the two-state Kalman filters (``kf``, ``fkf``,
-``ekf-xy``, whose position Jacobian is I) and, for the self-calibrating and sample-based
-filters, the smoother of their position marginal (the coupling through the heading bias is
-left out). Every estimate of index k gets the smoothed state of k; a floor change starts a
-new interval. Nothing here needs the tracker: it runs on what the server stores.
+``ekf-xy``, whose position Jacobian is I) and of the seed forms' position. The self-calibrating
+filters (``ekf``, ``ukf``, ``skpf``, ``pf``) store with each estimate their whole state
+[x, y, b, s], its covariance and the step that predicted it (``FullState``); a run whose
+estimates all have one is smoothed over the whole state, F_k the step's Jacobian at the
+filtered state (``selfcal.jacobians``) in C_k = P_{k|k} F_kᵀ P_{k+1|k}⁻¹, so a heading bias
+learned late bends the path before it as that bias rather than as independent noise per step
+(the PF stands in with its cloud's mean and covariance). On the held-out simulator scenarios
+that took the smoothed error from 1.45–1.47 to 1.23–1.28 m with wknn fixes and from 0.75–0.77
+to 0.65–0.66 with unbiased ones (``benchmarks/smoother_fullstate.py``, docs/msft-evaluation.md).
+Tracks stored before the states fall back to the position. Every estimate of index k gets the
+smoothed state of k; a floor change starts a new interval. Nothing here needs the tracker: it
+runs on what the server stores.
 
 So it needs neither the filter's kind nor the steps and fixes themselves: the process noise
-of step k is read off the stored covariances, Q_k = P_{k+1|k} − P_{k|k} (the growth from the
+of step k is read off the stored covariances, Q_k = P_{k+1|k} − F_k P_{k|k} F_kᵀ (the growth from the
 filtered estimate to the next step's prediction, its negative part dropped: a PF's cloud may
 shrink in a step where walls kill particles, ``_predicted_cov``), and each fix enters through the scan
 estimate it produced (a refused fix moved nothing there, so it moves nothing here either).
@@ -33,15 +41,22 @@ the PF's smoothed track within 0.01 m either way), docs/msft-evaluation.md.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
-from server.estimation.types import Estimate
+from server.estimation.tracking import selfcal
+from server.estimation.types import Estimate, FullState
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
+
+
+def _radians(step: tuple[float, float]) -> tuple[float, float]:
+    """A stored step (length m, heading °) as ``selfcal.jacobians`` takes it (length, heading rad)."""
+    return step[0], math.radians(step[1])
 
 
 def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
@@ -56,19 +71,45 @@ def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
     return out
 
 
-def _predicted_cov(P: np.ndarray, Pp: np.ndarray) -> np.ndarray:
-    """P_{k+1|k} with the step's process noise Q_k = P_{k+1|k} − P_{k|k} kept positive
-    semi-definite (its negative eigenvalues set to 0). A Kalman filter's prediction only grows
-    P, so its tracks are unchanged; a particle filter's cloud can shrink in a step (particles
-    killed by a wall), and a gain C = P_{k|k} P_{k+1|k}⁻¹ above 1 would then amplify the
+def _predicted_cov(FPF: np.ndarray, Pp: np.ndarray) -> np.ndarray:
+    """P_{k+1|k} with the step's process noise Q_k = P_{k+1|k} − F P_{k|k} Fᵀ kept positive
+    semi-definite (its negative eigenvalues set to 0); ``FPF`` is F P_{k|k} Fᵀ. A Kalman filter's
+    prediction only adds noise, so its tracks are unchanged; a particle filter's cloud can
+    shrink in a step (particles killed by a wall), and a gain above 1 would then amplify the
     differences going backwards, step after step (hundreds of metres on real walks)."""
-    w, V = np.linalg.eigh(0.5 * ((Pp - P) + (Pp - P).T))
-    return P + (V * np.maximum(w, 0.0)) @ V.T + 1e-12 * np.eye(len(P))
+    w, V = np.linalg.eigh(0.5 * ((Pp - FPF) + (Pp - FPF).T))
+    return FPF + (V * np.maximum(w, 0.0)) @ V.T + 1e-12 * np.eye(len(FPF))
 
 
-def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None = None) -> list[Estimate]:
+def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: list[np.ndarray],
+         Fs: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The RTS recursion over time indexes 0..n−1: filtered (xs, Ps), predicted (xp[k], Pp[k]: of k
+    from k − 1; index 0 unused) and the transitions Fs[k] (k − 1 → k)."""
+    x_s, P_s = list(xs), list(Ps)
+    for k in range(len(xs) - 2, -1, -1):
+        F = Fs[k + 1]
+        FP = F @ Ps[k]
+        P_pred = _predicted_cov(FP @ F.T, Pp[k + 1])
+        C = FP.T @ np.linalg.inv(P_pred)
+        x_s[k] = xs[k] + C @ (x_s[k + 1] - xp[k + 1])
+        P = Ps[k] + C @ (P_s[k + 1] - P_pred) @ C.T
+        P_s[k] = 0.5 * (P + P.T)
+    return x_s, P_s
+
+
+def _full(states: Sequence[FullState | None], first: list[int], last: list[int]) -> bool:
+    """Whether a segment can be smoothed over the whole state: every estimate has one, every
+    time index after the first starts with the step that predicted it."""
+    return all(states[i] is not None for i in last + first) and all(
+        states[i].step is not None for i in first[1:])  # type: ignore[union-attr]
+
+
+def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None = None,
+                 states: Sequence[FullState | None] | None = None) -> list[Estimate]:
     """The RTS-smoothed track: same length, times, floors and sources; smoothed means and
-    covariances. ``areas``: walkable areas by (building, floor); smoothed positions are kept in them."""
+    covariances. ``areas``: walkable areas by (building, floor); smoothed positions are kept in them.
+    ``states``: per estimate, the self-calibrating tracker's whole state (``FullState``); a floor's
+    run of estimates that all have one is smoothed over the whole state, any other over the position."""
     out: list[Estimate] = list(track)
     for a, b in _segments(track):
         # time indexes: a new one at every step estimate (and at the segment's first estimate)
@@ -85,17 +126,23 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
             last[k] = a + off
         for off in range(len(index) - 1, -1, -1):
             first[index[off]] = a + off
-        xs = [np.array([track[last[k]].x, track[last[k]].y]) for k in range(n)]
-        Ps = [np.array(track[last[k]].covariance, float) for k in range(n)]
-        x_s, P_s = list(xs), list(Ps)
-        for k in range(n - 2, -1, -1):
-            nxt = track[first[k + 1]]
-            xp = np.array([nxt.x, nxt.y])
-            Pp = _predicted_cov(Ps[k], np.array(nxt.covariance, float))
-            C = Ps[k] @ np.linalg.inv(Pp)
-            x_s[k] = xs[k] + C @ (x_s[k + 1] - xp)
-            P = Ps[k] + C @ (P_s[k + 1] - Pp) @ C.T
-            P_s[k] = 0.5 * (P + P.T)
+        if states is not None and _full(states, first, last):
+            full = [cast(FullState, states[i]) for i in range(a, b)]
+            fs = [full[i - a] for i in last]
+            xs = [np.array(f.mean) for f in fs]
+            Ps = [np.array(f.covariance) for f in fs]
+            pred = [full[i - a] for i in first]
+            Fs = [np.eye(len(xs[0]))] + [
+                selfcal.jacobians(xs[k - 1], *_radians(cast(tuple[float, float], pred[k].step)))[0] for k in range(1, n)]
+            x_s, P_s = _rts(xs, Ps, [np.array(f.mean) for f in pred], [np.array(f.covariance) for f in pred], Fs)
+            x_s = [x[:2] for x in x_s]
+            P_s = [P[:2, :2] for P in P_s]
+        else:
+            xs = [np.array([track[last[k]].x, track[last[k]].y]) for k in range(n)]
+            Ps = [np.array(track[last[k]].covariance, float) for k in range(n)]
+            pred2 = [track[first[k]] for k in range(n)]
+            x_s, P_s = _rts(xs, Ps, [np.array([e.x, e.y]) for e in pred2],
+                            [np.array(e.covariance, float) for e in pred2], [np.eye(2)] * n)
         area = (areas or {}).get((track[a].building, track[a].floor))
         if area is not None:
             x_s = list(area.nearest_inside(np.array(x_s)))
