@@ -38,7 +38,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -234,38 +234,57 @@ ALGORITHM = ["knn"]
 PARAMS: dict[str, dict] = {}
 
 
-def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> dict:
+@dataclass
+class Replay:
+    """A walk replayed as the server runs a session: its track, the trackers' whole states as the
+    server stores them with it, the gate's innovations and the stored session size per batch."""
+
+    estimator: SessionEstimator
+    track: list = field(default_factory=list)
+    states: list = field(default_factory=list)
+    innovations: list = field(default_factory=list)
+    state_bytes: list = field(default_factory=list)
+
+
+def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Replay:
+    """A batch every ``batch_s`` s, the session stored and loaded between batches (as the server does)."""
     est = SessionEstimator(name, seed=7, tracker_params=PARAMS.get(name))
     est.start(w.truth[0], None, 0, [], None, "init")
+    out = Replay(est)
     steps, scans = list(w.steps), list(w.scans)
-    truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
-    truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
-    errors, nees, innovations, track, state_bytes = [], [], [], [], []
-    states: list = []  # per track estimate, the tracker's whole state (as the server stores it)
     t_end = batch_s
     while steps or scans:
         bs = [s for s in steps if s.t < t_end]
         bc = [s for s in scans if s.t < t_end]
         steps, scans = steps[len(bs):], scans[len(bc):]
         stored = json.dumps(est.to_dict())
-        state_bytes.append(len(stored))
-        est = SessionEstimator.from_dict(json.loads(stored))
+        out.state_bytes.append(len(stored))
+        est = out.estimator = SessionEstimator.from_dict(json.loads(stored))
         est.innovations = []
-        out = est.apply_batch(bs, bc, fixes, site)
-        innovations += est.innovations
-        track += out.estimates
-        states += out.states or [None] * len(out.estimates)
-        for e in out.estimates:
-            d = np.array([e.x, e.y]) - truth_by_t[e.t]
-            errors.append(float(np.hypot(*d)))
-            if e.source == "step":
-                nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+        batch = est.apply_batch(bs, bc, fixes, site)
+        out.innovations += est.innovations
+        out.track += batch.estimates
+        out.states += batch.states
         t_end += batch_s
-    nis = [d2 for d2, _ in innovations]
+    return out
+
+
+def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> dict:
+    r = replay(name, w, fixes, site, batch_s)
+    truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
+    truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
+    errors, nees = [], []
+    for e in r.track:
+        d = np.array([e.x, e.y]) - truth_by_t[e.t]
+        errors.append(float(np.hypot(*d)))
+        if e.source == "step":
+            nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+    nis = [d2 for d2, _ in r.innovations]
     smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1]))
-                for e in smooth_track(track, None, states)]
-    return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis, "refused": sum(not ok for _, ok in innovations),
-            "fixes": len(innovations), "state_bytes": state_bytes, "bias_deg": getattr(est.tracker, "heading_bias_deg", None)}
+                for e in smooth_track(r.track, None, r.states)]
+    return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis,
+            "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
+            "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
 
 
 def pdr_errors(w: Walk) -> list[float]:

@@ -14,7 +14,6 @@ docs/msft-evaluation.md has the figures.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -24,25 +23,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import benchmarks.scenario_family as sf  # noqa: E402
-from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
 
 
-def run(name: str, w, fixes, site, batch_s: float = 2.0) -> dict[str, list[float]]:
-    est = SessionEstimator(name, seed=7)
-    est.start(w.truth[0], None, 0, [], None, "init")
-    steps, scans = list(w.steps), list(w.scans)
+def run(name: str, w, fixes, site) -> dict[str, list[float]]:
+    r = sf.replay(name, w, fixes, site)
     truth = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
-    track, states = [], []
-    t_end = batch_s
-    while steps or scans:
-        bs, bc = [s for s in steps if s.t < t_end], [s for s in scans if s.t < t_end]
-        steps, scans = steps[len(bs):], scans[len(bc):]
-        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
-        out = est.apply_batch(bs, bc, fixes, site)
-        track += out.estimates
-        states += out.states
-        t_end += batch_s
+    track, states = r.track, r.states
     answers = {"live": track, "position": smooth_track(track), "whole": smooth_track(track, None, states)}
     out: dict[str, list[float]] = {}
     for key, estimates in answers.items():

@@ -144,9 +144,8 @@ class SessionService:
         innovation gate refused (from the stored batch answers)."""
         with self.db.transaction() as s:
             row = _visible(store.feed_state(s.connection(), session_id), principal, session_id)
-            track = store.track(s, session_id)
+            track, states = store.track_with_states(s, session_id) if smoothed else (store.track(s, session_id), None)
             refused = store.refused_fix_indexes(s, session_id)
-            states = store.track_states(s, session_id) if smoothed else None
         if not smoothed:
             return track, refused
         # the floors' walkable areas as the batches use them (the site's context, cached by revision)

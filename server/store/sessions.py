@@ -100,7 +100,7 @@ def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: 
         {"session_id": session_id, "idx": first_idx + i, "seq": seq, "t": e.t, "x": e.x, "y": e.y, "floor": e.floor,
          "building": e.building, "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source,
          "state": None if f is None else f.to_dict()}
-        for i, (e, f) in enumerate(zip(estimates, full, strict=False))
+        for i, (e, f) in enumerate(zip(estimates, full, strict=True))
     ]
 
 
@@ -196,11 +196,15 @@ def track(s: Session, session_id: str) -> list[Estimate]:
     return [_estimate(*row) for row in tuples(rows)]
 
 
-def track_states(s: Session, session_id: str) -> list[FullState | None]:
-    """Per estimate of the track (in order), the tracker's whole state stored with it (None: a tracker
-    without one, or an estimate stored before states were)."""
-    rows = s.execute(select(_ESTIMATES.c.state).where(_ESTIMATES.c.session_id == session_id).order_by(_ESTIMATES.c.idx))
-    return [None if d is None else FullState.from_dict(d) for (d,) in tuples(rows)]
+def track_with_states(s: Session, session_id: str) -> tuple[list[Estimate], list[FullState | None]]:
+    """The track (as ``track``) and, per estimate, the tracker's whole state stored with it (None: a
+    tracker without one, or an estimate stored before states were), in one read: what the smoother needs."""
+    rows = tuples(s.execute(
+        select(*_ESTIMATE_COLUMNS, _ESTIMATES.c.state).where(_ESTIMATES.c.session_id == session_id)
+        .order_by(_ESTIMATES.c.idx)
+    ))
+    return [_estimate(*row[:-1]) for row in rows], [None if row[-1] is None else FullState.from_dict(row[-1])
+                                                     for row in rows]
 
 
 def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:

@@ -242,8 +242,7 @@ def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200,
     (`group_held_out`: every group held out once) the accuracy figures, the calibration and
     the weak points come from those rows instead; the timings stay ``model``'s on ``test``."""
     metrics, held = _measure(model, stratified_sample(test, MAX_HELD_OUT), n_single, 0)
-    used_pooled = pooled is not None and len(pooled.residuals) > 0
-    if pooled is not None and used_pooled:
+    if pooled is not None and len(pooled.residuals):
         held, metrics = pooled, pooled.scored(metrics)
     if held is None:
         nan = NisSummary(float("nan"), float("nan"))
@@ -252,7 +251,8 @@ def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200,
     cal = fit_calibration(r, c)
     return Validation(
         metrics=metrics, calibration=cal, nis_raw=NisSummary.of(nis(r, c)),
-        nis_calibrated=NisSummary.of(nis(r, cal.apply(c))), points=held.points, split=split, pooled=used_pooled,
+        nis_calibrated=NisSummary.of(nis(r, cal.apply(c))), points=held.points, split=split,
+        pooled=held is pooled,
     )
 
 

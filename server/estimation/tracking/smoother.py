@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,11 +52,6 @@ from server.estimation.types import Estimate, FullState
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
-
-
-def _radians(step: tuple[float, float]) -> tuple[float, float]:
-    """A stored step (length m, heading °) as ``selfcal.jacobians`` takes it (length, heading rad)."""
-    return step[0], math.radians(step[1])
 
 
 def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
@@ -97,11 +92,23 @@ def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: l
     return x_s, P_s
 
 
-def _full(states: Sequence[FullState | None], first: list[int], last: list[int]) -> bool:
-    """Whether a segment can be smoothed over the whole state: every estimate has one, every
-    time index after the first starts with the step that predicted it."""
-    return all(states[i] is not None for i in last + first) and all(
-        states[i].step is not None for i in first[1:])  # type: ignore[union-attr]
+def _full_states(states: Sequence[FullState | None], first: list[int],
+                 last: list[int]) -> tuple[list[FullState], list[FullState]] | None:
+    """A segment's filtered (``last``) and predicted (``first``) whole states when it can be smoothed
+    over them: every estimate has one and every time index after the first starts with the step
+    that predicted it; None otherwise."""
+    filtered = [f for i in last if (f := states[i]) is not None]
+    predicted = [f for i in first if (f := states[i]) is not None]
+    if len(filtered) < len(last) or len(predicted) < len(first) or any(p.step is None for p in predicted[1:]):
+        return None
+    return filtered, predicted
+
+
+def _jacobian(filtered: FullState, predicted: FullState) -> np.ndarray:
+    """F of the step from ``filtered`` to ``predicted`` (the step that predicted it), at ``filtered``."""
+    assert predicted.step is not None
+    length_m, heading_deg = predicted.step
+    return selfcal.jacobians(np.array(filtered.mean), length_m, math.radians(heading_deg))[0]
 
 
 def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None = None,
@@ -126,23 +133,18 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
             last[k] = a + off
         for off in range(len(index) - 1, -1, -1):
             first[index[off]] = a + off
-        if states is not None and _full(states, first, last):
-            full = [cast(FullState, states[i]) for i in range(a, b)]
-            fs = [full[i - a] for i in last]
-            xs = [np.array(f.mean) for f in fs]
-            Ps = [np.array(f.covariance) for f in fs]
-            pred = [full[i - a] for i in first]
-            Fs = [np.eye(len(xs[0]))] + [
-                selfcal.jacobians(xs[k - 1], *_radians(cast(tuple[float, float], pred[k].step)))[0] for k in range(1, n)]
-            x_s, P_s = _rts(xs, Ps, [np.array(f.mean) for f in pred], [np.array(f.covariance) for f in pred], Fs)
-            x_s = [x[:2] for x in x_s]
-            P_s = [P[:2, :2] for P in P_s]
+        full = None if states is None else _full_states(states, first, last)
+        if full is not None:
+            filtered, predicted = full
+            Fs = [np.eye(len(filtered[0].mean))] + [_jacobian(filtered[k - 1], predicted[k]) for k in range(1, n)]
+            x_s, P_s = _rts([np.array(f.mean) for f in filtered], [np.array(f.covariance) for f in filtered],
+                            [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs)
+            x_s, P_s = [x[:2] for x in x_s], [P[:2, :2] for P in P_s]
         else:
-            xs = [np.array([track[last[k]].x, track[last[k]].y]) for k in range(n)]
-            Ps = [np.array(track[last[k]].covariance, float) for k in range(n)]
-            pred2 = [track[first[k]] for k in range(n)]
-            x_s, P_s = _rts(xs, Ps, [np.array([e.x, e.y]) for e in pred2],
-                            [np.array(e.covariance, float) for e in pred2], [np.eye(2)] * n)
+            fe, pe = [track[i] for i in last], [track[i] for i in first]
+            x_s, P_s = _rts([np.array([e.x, e.y]) for e in fe], [np.array(e.covariance, float) for e in fe],
+                            [np.array([e.x, e.y]) for e in pe], [np.array(e.covariance, float) for e in pe],
+                            [np.eye(2)] * n)
         area = (areas or {}).get((track[a].building, track[a].floor))
         if area is not None:
             x_s = list(area.nearest_inside(np.array(x_s)))
