@@ -28,7 +28,6 @@ from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
-    ParticleFilterXYTracker,
     apply_snap,
     make_tracker,
     selfcal,
@@ -147,10 +146,16 @@ class SessionEstimator:
         return self._record(t, source)
 
     def _record(self, t: float | None, source: str, step: Step | None = None) -> Estimate:
-        """The tracker's estimate now, and (``full_state``) a self-calibrating tracker's whole state."""
+        """The tracker's estimate now, and (``full_state``) a self-calibrating tracker's whole state.
+        Where the floor has a walkable area the estimate's position is the walkable point nearest
+        the tracker's mean (a walker is never inside a wall; the smoothed track does the same),
+        while the tracker itself, and the stored state the smoother reads, keep their own mean."""
         assert self.tracker is not None and self.floors is not None
         building, level = building_level(self.floors.floor)
-        self.estimate = Estimate.of(t, self.tracker.mean, self.tracker.covariance, level, source, building)
+        mean = self.tracker.mean
+        if self.tracker.walkable is not None:
+            mean = self.tracker.walkable.nearest_inside(mean)[0]
+        self.estimate = Estimate.of(t, mean, self.tracker.covariance, level, source, building)
         self.full_state = (FullState.of(self.tracker.state_mean, self.tracker.state_covariance, step)
                            if isinstance(self.tracker, selfcal.Calibrating) else None)
         return self.estimate
@@ -227,8 +232,9 @@ class SessionEstimator:
 
     def _use_plan(self, site: SiteMap) -> None:
         """The floor plan comes from the site, not from the stored state: the tracker's floor's
-        walls (set when they are not the ones it has), and for a PF the walkable area whose
-        outside kills particles. A plan imported while a session is open applies at its next input."""
+        walls (set when they are not the ones it has) and walkable area (a PF kills particles
+        outside it; every estimate is reported inside it, ``_record``). A plan imported while a
+        session is open applies at its next input."""
         if self.tracker is None or self.floors is None:
             return
         building, level = building_level(self.floors.floor)
@@ -236,8 +242,7 @@ class SessionEstimator:
         if walls is not self._plan_walls:
             self.tracker.set_walls(walls)
             self._plan_walls = walls
-        if isinstance(self.tracker, ParticleFilterXYTracker):
-            self.tracker.set_walkable(site.walkable.get((building, level)))
+        self.tracker.set_walkable(site.walkable.get((building, level)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint
@@ -283,13 +288,14 @@ class SessionEstimator:
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
-            return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building), None
+            self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building)
+            self._use_plan(site)
+            return self._record(scan.t, "scan"), None
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
-            # A confirmed floor change (maybe into another building): its walls, restart from the fix there.
-            self._plan_walls = site.walls_of(fix.floor, fix.building)
-            self.tracker.set_walls(self._plan_walls)
+            # A confirmed floor change (maybe into another building): its plan, restart from the fix there.
+            self._use_plan(site)
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
         elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)

@@ -23,11 +23,14 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from server.estimation.types import Fix, Step
+
+if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
+    from server.estimation.floorplan import Walkable
 
 FORMAT_VERSION = 2
 #: version-1 names of the filters whose seed form has been renamed ``<name>-xy``
@@ -136,6 +139,8 @@ class Tracker(ABC):
         self.walls = as_walls(walls)
         self.seed = seed
         self.params: dict[str, Any] = {}
+        #: the floor's walkable area (None: unconstrained); set by the session, not stored
+        self.walkable: Walkable | None = None
 
     # -- the filter ---------------------------------------------------------------
     @abstractmethod
@@ -177,6 +182,12 @@ class Tracker(ABC):
     def set_walls(self, walls) -> None:
         """Replace the wall segments (e.g. after a floor change)."""
         self.walls = as_walls(walls)
+
+    def set_walkable(self, walkable: Walkable | None) -> None:
+        """The floor's walkable area from the next input on (None: no constraint); trackers that
+        use it say how (the PF kills particles outside it, the Gaussian self-calibrating filters
+        keep their mean in it)."""
+        self.walkable = walkable
 
     def search_region(self) -> tuple[float, float, float, float] | None:
         """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its

@@ -135,8 +135,6 @@ class ParticleFilterXYTracker(Tracker):
         }
         self.rng = make_rng(seed)
         self._grid = None
-        #: the floor's walkable area (None: unconstrained); set by the session, not stored
-        self.walkable: floorplan.Walkable | None = None
         self._wall_index: floorplan.WallIndex | None = None
 
     # -- filter -------------------------------------------------------------------
@@ -170,10 +168,6 @@ class ParticleFilterXYTracker(Tracker):
     def set_walls(self, walls) -> None:
         super().set_walls(walls)
         self._wall_index = None
-
-    def set_walkable(self, walkable: floorplan.Walkable | None) -> None:
-        """The floor's walkable area for the next steps (None: no constraint)."""
-        self.walkable = walkable
 
     def _crosses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         if len(self.walls) < floorplan.INDEX_FROM_WALLS:
