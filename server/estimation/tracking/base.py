@@ -184,9 +184,8 @@ class Tracker(ABC):
         self.walls = as_walls(walls)
 
     def set_walkable(self, walkable: Walkable | None) -> None:
-        """The floor's walkable area from the next input on (None: no constraint); trackers that
-        use it say how (the PF kills particles outside it, the Gaussian self-calibrating filters
-        keep their mean in it)."""
+        """The floor's walkable area from the next input on (None: none). The PF kills particles
+        outside it; for every tracker the session reports its estimates inside it."""
         self.walkable = walkable
 
     def search_region(self) -> tuple[float, float, float, float] | None:
