@@ -29,6 +29,11 @@ position NEES (2-D; mean over step estimates, 2 is consistent); the NIS of the f
 the innovation gate; and the mean error of the track after the RTS smoother
 (``server/estimation/tracking/smoother.py``, run on the stored track as a replay would);
 and the mean size of the session's stored state (JSON, kB) per batch.
+
+With ``--plan`` the floor has the loop's plan: a corridor ``--corridor-m`` wide around the
+centre-line (its walls, and its walkable area as the server holds an imported plan), so the
+PF's walls and the session's walkable estimates work as on a site with a floor plan; the
+scenarios' draws are the same with or without it.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
+from server.estimation.floorplan import Walkable  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
 from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
@@ -155,6 +161,16 @@ class World:
                                 for k, (x, y), r0, g in zip(self.tx_ids, self.tx_xy, self.r0, self.gamma, strict=True)
                                 if k.startswith("ble:")})
 
+    def plan(self, corridor_m: float) -> tuple[list, Walkable]:
+        """The loop's walls (the outer and inner rectangles) and its walkable area (four
+        overlapping strips: the stored form of an area is hole-free polygons), ``corridor_m`` wide."""
+        W, H, c = self.sc.width_m, self.sc.height_m, corridor_m / 2
+        outer = [(-c, -c), (W + c, -c), (W + c, H + c), (-c, H + c)]
+        inner = [(c, c), (W - c, c), (W - c, H - c), (c, H - c)]
+        walls = [[*r[i], *r[(i + 1) % 4]] for r in (outer, inner) for i in range(4)]
+        strips = [(-c, -c, W + c, c), (-c, H - c, W + c, H + c), (-c, -c, c, H + c), (W - c, -c, W + c, H + c)]
+        return walls, Walkable([[[x0, y0], [x1, y0], [x1, y1], [x0, y1]] for x0, y0, x1, y1 in strips])
+
     def model(self, algorithm: str = "knn"):
         rng = np.random.default_rng(self.sc.seed + 2)
         rows = []
@@ -232,6 +248,8 @@ class GaussianFixes:
 ALGORITHM = ["knn"]
 #: tracker keyword arguments per filter name (``--set``)
 PARAMS: dict[str, dict] = {}
+#: the corridor's width when the floor has the loop's plan (``--plan``; None: no plan)
+CORRIDOR_M: list[float | None] = [None]
 
 
 @dataclass
@@ -281,7 +299,7 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
             nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
     nis = [d2 for d2, _ in r.innovations]
     smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1]))
-                for e in smooth_track(r.track, None, r.states)]
+                for e in smooth_track(r.track, site.walkable, r.states)]
     return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis,
             "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
             "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
@@ -309,6 +327,9 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
                 continue
             fp.append(float(np.hypot(f.x - p[0], f.y - p[1])))
         site = world.site()
+    if CORRIDOR_M[0] is not None:
+        walls, walkable = world.plan(CORRIDOR_M[0])
+        site = replace(site, walls={(0, 0): walls}, walkable={(0, 0): walkable})
     out = {"pdr-only": {"errors": pdr_errors(w)}, "fingerprint-only": {"errors": fp}}
     for name in filters:
         out[name] = run_filter(name, w, fixes, site)
@@ -362,10 +383,13 @@ def main() -> int:
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
     ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
+    ap.add_argument("--plan", action="store_true", help="the floor has the loop's plan (walls and walkable area)")
+    ap.add_argument("--corridor-m", type=float, default=3.0, help="the corridor's width with --plan (m)")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
+    CORRIDOR_M[0] = a.corridor_m if a.plan else None
     for item in a.set:
         key, value = item.split("=", 1)
         flt, param = key.split(".", 1)
@@ -379,7 +403,8 @@ def main() -> int:
         results = [run_scenario(s, filters, kind, cov_scale) for s in scenarios]
         rows = table(results, ["pdr-only", "fingerprint-only", *filters])
         what = f"{a.algorithm} model" if kind == "knn" else kind  # ("knn": the model's fixes, of --algorithm)
-        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {what} fixes "
+        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {what} fixes"
+                 f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''} "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
         print()
