@@ -106,7 +106,8 @@ def _walkable_size(polygons: list[list[tuple[float, float]]] | None) -> list[lis
 
 Walkable = Annotated[list[Ring], Field(max_length=10_000), AfterValidator(_walkable_size)]
 WALKABLE_DOC = ("Extension: where one can walk on the floor, as polygons in site metres, each the exterior ring "
-                "[[x, y], ...] of at least 3 points (at most 100,000 points in all); null or absent: unknown.")
+                "[[x, y], ...] of at least 3 points (at most 100,000 points in all); null or absent: unknown. "
+                "Tracking estimates on the floor lie inside it (the walkable point nearest the tracker's mean).")
 
 
 class FloorIn(Strict):
