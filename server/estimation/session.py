@@ -24,6 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from server.estimation.fingerprint.fusion import cold_start_fix
+from server.estimation.floorplan import Walkable
 from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
@@ -138,9 +139,12 @@ class SessionEstimator:
     def started(self) -> bool:
         return self.tracker is not None
 
-    def start(self, mean, cov, floor: int, walls, t: float | None, source: str, building: int = 0) -> Estimate:
+    def start(self, mean, cov, floor: int, walls, t: float | None, source: str, building: int = 0,
+              walkable: Walkable | None = None) -> Estimate:
+        """A new tracker at (mean, cov) on that floor, with its walls and walkable area; its first estimate."""
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
         self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed, **self.tracker_params)
+        self.tracker.set_walkable(walkable)
         self._plan_walls = walls
         self.floors = FloorTracker(floor_key(building, floor))
         return self._record(t, source)
@@ -288,9 +292,8 @@ class SessionEstimator:
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
-            self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building)
-            self._use_plan(site)
-            return self._record(scan.t, "scan"), None
+            return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
+                              site.walkable.get((fix.building, fix.floor))), None
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):

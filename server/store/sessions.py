@@ -94,8 +94,9 @@ def _info(row: TrackingSession) -> SessionInfo:
 
 def _estimate_rows(session_id: str, first_idx: int, seq: int | None, estimates: Sequence[Estimate],
                    states: Sequence[FullState | None] = ()) -> list[dict]:
-    """Rows of ``estimates``, each with its tracker's whole state when ``states`` has one (NULL otherwise)."""
-    full = list(states) + [None] * (len(estimates) - len(states))
+    """Rows of ``estimates``, each with its tracker's whole state from ``states`` (one per estimate, None:
+    NULL; no ``states``: NULL for all)."""
+    full = states or [None] * len(estimates)
     return [
         {"session_id": session_id, "idx": first_idx + i, "seq": seq, "t": e.t, "x": e.x, "y": e.y, "floor": e.floor,
          "building": e.building, "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source,
