@@ -11,7 +11,7 @@ from benchmarks.scenario_family import World, draw, walk
 from server.estimation.tracking.geometry import crosses_walls
 
 
-@pytest.mark.parametrize(("split", "index"), [("heldout", 0), ("heldout", 5), ("tune", 3)])
+@pytest.mark.parametrize(("split", "index"), [("heldout", 0), ("heldout", 5), ("tune", 3), ("stress", 15)])
 def test_the_loop_plan_holds_the_true_walk(split, index):
     world = World(draw(split, index))
     walls, walkable = world.plan(3.0)
@@ -20,3 +20,19 @@ def test_the_loop_plan_holds_the_true_walk(split, index):
     assert not crosses_walls(truth[:-1], truth[1:], np.asarray(walls, float)).any()
     W, H = world.sc.width_m, world.sc.height_m
     assert not walkable.contains(np.array([[W / 2, H / 2], [-3.0, -3.0]])).any()
+
+
+def test_the_splits_draw_from_ranges_that_do_not_overlap():
+    """stress is harsher than heldout (and heldout than tune) on every PDR and radio parameter,
+    so a choice made on stress or tune is reported on heldout draws it never saw."""
+    from benchmarks.scenario_family import RANGES
+
+    harsher = ("drift_deg_per_step", "bias0_deg", "length_bias", "heading_white_deg", "scan_noise_db", "shadow_db",
+               "gauss_fix_std_m")
+    for easy, hard in (("tune", "heldout"), ("heldout", "stress")):
+        for k in harsher:
+            assert RANGES[easy][k][1] < RANGES[hard][k][0], (easy, hard, k)
+        assert RANGES[hard]["n_tx"][1] < RANGES[easy]["n_tx"][0]  # fewer transmitters
+    for i in range(8):
+        sc = draw("stress", i)
+        assert 0.28 <= abs(sc.drift_deg_per_step) <= 0.4 and sc.seed == 30_000 + i

@@ -247,3 +247,40 @@ def test_particles_far_from_the_origin_keep_the_resolution_of_their_spread():
     assert len(packed) < 1000 * 4 * 1.35
     back = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
     np.testing.assert_array_equal(back.particles, t.particles)
+
+
+@pytest.mark.parametrize("name", ["pf", "pf-xy"])
+def test_pf_with_resample_kills_off_keeps_the_survivors_weights_until_degenerate(name):
+    """resample_kills=0: a wall kill zeroes the dead particles' weights and resamples only when
+    the effective count drops below resample_threshold (as a fix does); the state with its
+    zero weights restores exactly."""
+    import json
+
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker(name, [0, 0.3], np.eye(2) * 0.04, walls=WALL, seed=7, resample_kills=0)
+    t.predict(Step(0, 0.45, 0.0))  # part of the cloud reaches the wall at y = 1
+    dead = t.weights == 0
+    assert 0 < dead.sum() < len(t.weights) / 2  # killed, not resampled: the dead rows stay, weightless
+    assert np.all(t.particles[~dead, 1] < 1.0)
+    assert effective_sample_size(t.weights) >= t.params["resample_threshold"] * len(t.weights)
+    np.testing.assert_allclose(t.mean, t.weights @ t.particles[:, :2])
+    assert t.mean[1] < 1.0
+    back = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    np.testing.assert_array_equal(back.weights, t.weights)
+    for tr in (t, back):
+        tr.predict(Step(1, 0.45, 0.0))
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_array_equal(back.weights, t.weights)
+    # the default resamples at the first kill: every weight equal
+    d = make_tracker(name, [0, 0.3], np.eye(2) * 0.04, walls=WALL, seed=7)
+    d.predict(Step(0, 0.45, 0.0))
+    assert np.all(d.weights == d.weights[0])
+
+
+def test_pf_with_resample_kills_off_resamples_when_most_die():
+    t = make_tracker("pf-xy", [0, 0.5], np.eye(2) * 0.01, walls=WALL, seed=7, resample_kills=0)
+    assert np.all(t.particles[:, 1] < 1.0)
+    t.predict(Step(0, 0.7, 0.0))  # most of the cloud crosses y = 1
+    assert np.all(t.weights == t.weights[0])  # resampled among the survivors
+    assert np.all(t.particles[:, 1] < 1.0)

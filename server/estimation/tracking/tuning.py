@@ -39,6 +39,8 @@ TUNABLE: dict[str, Tunable] = {
     "kld_bin_m": Tunable(0.01, 100.0, "KLD-sampling's bin, m"),
     "kld_epsilon": Tunable(0.001, 1.0, "KLD-sampling's error bound"),
     "resample_threshold": Tunable(0.0, 1.0, "resample below this share of effective particles"),
+    "resample_kills": Tunable(0, 1, "1: resample whenever a wall kills, 0: only below resample_threshold",
+                              integer=True),
     "max_range_m": Tunable(0.0, 100.0, "m, longest beacon range used"),
     "wall_margin_m": Tunable(0.0, 5.0, "m kept from a wall"),
     "alpha": Tunable(1e-3, 10.0, "sigma-point spread"),
