@@ -27,8 +27,8 @@ honest covariance σ²I (the fix quality drawn from the split's range); that is 
 the share of refused fixes must stay below 5 %.
 
 Figures per method: mean / p90 error (m) over every estimate of every scenario; the
-position NEES (2-D; mean and median over step estimates, 2 is consistent, and the share
-above 50: a PF cloud collapsed onto a few points); the NIS of the fixes
+position NEES (2-D; mean and median over step estimates, 2 is consistent, the share above
+50: a PF cloud collapsed onto a few points, and the smoothed track's mean); the NIS of the fixes
 (mean over fixes, 2 is consistent; before any inflation); the share of fixes refused by
 the innovation gate; and the mean error of the track after the RTS smoother
 (``server/estimation/tracking/smoother.py``, run on the stored track as a replay would);
@@ -309,9 +309,13 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
         if e.source == "step":
             nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
     nis = [d2 for d2, _ in r.innovations]
-    smoothed = [float(np.hypot(e.x - truth_by_t[e.t][0], e.y - truth_by_t[e.t][1]))
-                for e in smooth_track(r.track, site.walkable, r.states)]
-    return {"errors": errors, "smoothed": smoothed, "nees": nees, "nis": nis,
+    smoothed, smoothed_nees = [], []
+    for e in smooth_track(r.track, site.walkable, r.states):
+        d = np.array([e.x, e.y]) - truth_by_t[e.t]
+        smoothed.append(float(np.hypot(*d)))
+        if e.source == "step":
+            smoothed_nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+    return {"errors": errors, "smoothed": smoothed, "smoothed_nees": smoothed_nees, "nees": nees, "nis": nis,
             "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
             "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
 
@@ -354,6 +358,7 @@ def table(results: list[dict], methods) -> list[dict]:
         row = {"method": m, "mean": float(errs.mean()), "p90": float(np.percentile(errs, 90))}
         if "nees" in results[0].get(m, {}):
             row["smoothed"] = float(np.mean(np.concatenate([r[m]["smoothed"] for r in results])))
+            row["smoothed_nees"] = float(np.mean(np.concatenate([r[m]["smoothed_nees"] for r in results])))
             row["nees"] = float(np.mean(np.concatenate([r[m]["nees"] for r in results])))
             nees = np.concatenate([r[m]["nees"] for r in results])
             row["nees_p50"] = float(np.median(nees))
@@ -371,14 +376,14 @@ def markdown(rows: list[dict], title: str) -> str:
     pdr = next(r["mean"] for r in rows if r["method"] == "pdr-only")
     fp = next(r["mean"] for r in rows if r["method"] == "fingerprint-only")
     lines = [f"{title}", "", "| method | mean m | p90 m | vs PDR | vs fingerprint | smoothed m | NEES mean | NEES p50 "
-             "| NEES > 50 | NIS mean | refused | state kB |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| NEES > 50 | smoothed NEES | NIS mean | refused | state kB |", "|---" * 13 + "|"]
     for r in rows:
         if "nees" in r:
             extra = (f"{100 * (r['mean'] / pdr - 1):+.0f} % | {100 * (r['mean'] / fp - 1):+.0f} % | {r['smoothed']:.2f} | "
-                     f"{r['nees']:.2f} | {r['nees_p50']:.2f} | {r['nees_over_50_pct']:.1f} % | "
+                     f"{r['nees']:.2f} | {r['nees_p50']:.2f} | {r['nees_over_50_pct']:.1f} % | {r['smoothed_nees']:.2f} | "
                      f"{r['nis']:.2f} | {r['refused_pct']:.1f} % | {r['state_kb']:.1f} |")
         else:
-            extra = "— | — | — | — | — | — | — | — | — |"
+            extra = "— | — | — | — | — | — | — | — | — | — |"
         lines.append(f"| {r['method']} | {r['mean']:.2f} | {r['p90']:.2f} | {extra}")
     return "\n".join(lines)
 

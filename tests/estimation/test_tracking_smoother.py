@@ -12,8 +12,8 @@ from filterpy.kalman import KalmanFilter
 
 from server.estimation.tracking import make_tracker
 from server.estimation.tracking.motion import step_noise_cov
-from server.estimation.tracking.smoother import smooth_track
-from server.estimation.types import Estimate, Fix, Step, step_displacement
+from server.estimation.tracking.smoother import SMOOTHED_COV_SCALE, smooth_track
+from server.estimation.types import Estimate, Fix, FullState, Step, step_displacement
 from tests.helpers.simulate import simulate_walk
 
 
@@ -136,7 +136,6 @@ def _full_state_track(n: int = 12, seed: int = 4):
     linear and filterpy's RTS is exact) and P⁻ = F P Fᵀ + Q, then a scan estimate with some
     filtered state; the first index is the initial estimate."""
     from server.estimation.tracking import selfcal
-    from server.estimation.types import FullState
 
     rng = np.random.default_rng(seed)
 
@@ -174,7 +173,9 @@ def test_the_full_state_smoother_equals_filterpy_rts_over_the_whole_state():
     for k in range(len(xf)):
         for i in ([0] if k == 0 else [2 * k - 1, 2 * k]):  # every estimate of index k gets its smoothed state
             np.testing.assert_allclose([smoothed[i].x, smoothed[i].y], xs_ref[k][:2], atol=1e-8)
-            np.testing.assert_allclose(np.array(smoothed[i].covariance), Ps_ref[k][:2, :2], atol=1e-8)
+            # served ×SMOOTHED_COV_SCALE: the RTS covariance calibrated to the smoother's errors
+            np.testing.assert_allclose(np.array(smoothed[i].covariance), SMOOTHED_COV_SCALE * Ps_ref[k][:2, :2],
+                                       atol=1e-8)
     # the position marginal alone (what a track without states gets) is another answer
     marginal = smooth_track(track)
     assert max(abs(a.x - b.x) + abs(a.y - b.y) for a, b in zip(marginal, smoothed, strict=True)) > 1e-3
@@ -205,3 +206,24 @@ def test_the_session_records_the_whole_state_of_a_self_calibrating_tracker_only(
             assert (e.x, e.y) == pytest.approx(s.mean[:2]) and np.array(e.covariance) == pytest.approx(
                 np.array(s.covariance)[:2, :2])
             assert type(s).from_dict(json.loads(json.dumps(s.to_dict()))) == s  # stored and read back exactly
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_smoothed_covariances_stay_positive_definite_after_a_collapsed_cloud(seed):
+    """A PF cloud collapsed onto a few copies (walls killed the rest) has a near-singular
+    covariance; the recursion's round-off must not serve a smoothed covariance with a negative
+    variance (a NEES below 0)."""
+    rng = np.random.default_rng(seed)
+    n = 60
+    track, states = [], []
+    x = np.array([0.0, 0.0, 0.0, 1.0])
+    for k in range(n):
+        a = rng.normal(0, 1, (4, 1)) * 10.0 ** rng.uniform(-1, 1)
+        P = a @ a.T + 1e-13 * np.eye(4)  # rank one: the cloud's copies of one particle
+        step = None if k == 0 else Step(float(k), 0.7, float(rng.uniform(0, 360)))
+        x = x + rng.normal(0, 0.5, 4) * [1, 1, 0.02, 0.01]
+        track.append(Estimate.of(float(k), x[:2], P[:2, :2] + 1e-9 * np.eye(2), 0, "init" if k == 0 else "step"))
+        states.append(FullState.of(x, P, step))
+    smoothed = smooth_track(track, None, states)
+    for e in smoothed:
+        assert np.linalg.eigvalsh(np.array(e.covariance))[0] > 0

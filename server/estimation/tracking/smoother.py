@@ -54,6 +54,17 @@ if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
 
 
+#: the whole-state smoother's position covariance is served ×2.12: the RTS covariance assumes the
+#: fixes' errors independent in time, but a fingerprint map's errors persist along a walk, so the
+#: smoother claims more than it gains (smoothed NEES 3.8–5.1 against 1.9–2.2 live on the tune
+#: scenarios). Fitted on the tune scenarios of benchmarks/scenario_family.py (the mean over
+#: pf/skpf/ukf/ekf of their smoothed NEES / 2), chosen against the live covariance and the RTS's own
+#: on tune and stress (docs/msft-evaluation.md, "The smoothed track's covariance").
+SMOOTHED_COV_SCALE = 2.12
+#: smallest eigenvalue (m²) of a smoothed covariance (a collapsed PF cloud's round-off can leave one negative)
+MIN_VARIANCE = 1e-9
+
+
 def _segments(track: Sequence[Estimate]) -> list[tuple[int, int]]:
     """[start, end) runs of one floor (of one building)."""
     out, start = [], 0
@@ -72,8 +83,13 @@ def _predicted_cov(FPF: np.ndarray, Pp: np.ndarray) -> np.ndarray:
     prediction only adds noise, so its tracks are unchanged; a particle filter's cloud can
     shrink in a step (particles killed by a wall), and a gain above 1 would then amplify the
     differences going backwards, step after step (hundreds of metres on real walks)."""
-    w, V = np.linalg.eigh(0.5 * ((Pp - FPF) + (Pp - FPF).T))
-    return FPF + (V * np.maximum(w, 0.0)) @ V.T + 1e-12 * np.eye(len(FPF))
+    return FPF + _psd(Pp - FPF, 0.0) + 1e-12 * np.eye(len(FPF))
+
+
+def _psd(A: np.ndarray, floor: float) -> np.ndarray:
+    """The symmetric part of ``A`` with its eigenvalues raised to at least ``floor``."""
+    w, V = np.linalg.eigh(0.5 * (A + A.T))
+    return (V * np.maximum(w, floor)) @ V.T
 
 
 def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: list[np.ndarray],
@@ -89,6 +105,8 @@ def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: l
         x_s[k] = xs[k] + C @ (x_s[k + 1] - xp[k + 1])
         P = Ps[k] + C @ (P_s[k + 1] - P_pred) @ C.T
         P_s[k] = 0.5 * (P + P.T)
+        if np.linalg.eigvalsh(P_s[k])[0] < MIN_VARIANCE:  # round-off after a collapsed PF cloud
+            P_s[k] = _psd(P_s[k], MIN_VARIANCE)
     return x_s, P_s
 
 
@@ -139,7 +157,7 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
             Fs = [np.eye(len(filtered[0].mean))] + [_jacobian(filtered[k - 1], predicted[k]) for k in range(1, n)]
             x_s, P_s = _rts([np.array(f.mean) for f in filtered], [np.array(f.covariance) for f in filtered],
                             [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs)
-            x_s, P_s = [x[:2] for x in x_s], [P[:2, :2] for P in P_s]
+            x_s, P_s = [x[:2] for x in x_s], [SMOOTHED_COV_SCALE * P[:2, :2] for P in P_s]
         else:
             fe, pe = [track[i] for i in last], [track[i] for i in first]
             x_s, P_s = _rts([np.array([e.x, e.y]) for e in fe], [np.array(e.covariance, float) for e in fe],
