@@ -358,7 +358,9 @@ def table(results: list[dict], methods) -> list[dict]:
         row = {"method": m, "mean": float(errs.mean()), "p90": float(np.percentile(errs, 90))}
         if "nees" in results[0].get(m, {}):
             row["smoothed"] = float(np.mean(np.concatenate([r[m]["smoothed"] for r in results])))
-            row["smoothed_nees"] = float(np.mean(np.concatenate([r[m]["smoothed_nees"] for r in results])))
+            smoothed_nees = np.concatenate([r[m]["smoothed_nees"] for r in results])
+            row["smoothed_nees"] = float(np.mean(smoothed_nees))
+            row["smoothed_nees_p50"] = float(np.median(smoothed_nees))
             row["nees"] = float(np.mean(np.concatenate([r[m]["nees"] for r in results])))
             nees = np.concatenate([r[m]["nees"] for r in results])
             row["nees_p50"] = float(np.median(nees))

@@ -133,8 +133,8 @@ def get_track(
     smoothed: Annotated[bool, Query(description=(
         "Extension. true: the track after a fixed-interval Rauch–Tung–Striebel smoother over the stored "
         "estimates (same length, times, floors and sources; each position uses the fixes after it too) — "
-        "the best after-the-fact path, for replay and analytics. false (default): the live track as "
-        "estimated."))] = False,
+        "the best after-the-fact path, for replay and analytics; covariances calibrated like the live "
+        "ones'. false (default): the live track as estimated."))] = False,
     since: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description=(
         "Extension. Only the estimates whose track index (0 = the first) is greater than this: the index "
         "of the last estimate already read. Default: from the start."))] = None,

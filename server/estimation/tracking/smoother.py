@@ -21,7 +21,9 @@ learned late bends the path before it as that bias rather than as independent no
 (the PF stands in with its cloud's mean and covariance). On the held-out simulator scenarios
 that took the smoothed error from 1.45–1.47 to 1.23–1.28 m with wknn fixes and from 0.75–0.77
 to 0.65–0.66 with unbiased ones (``benchmarks/smoother_fullstate.py``, docs/msft-evaluation.md).
-Tracks stored before the states fall back to the position. Every estimate of index k gets the
+Tracks stored before the states fall back to the position. The whole-state smoother's covariance
+is served calibrated (``SMOOTHED_COV_SCALE``) and every smoothed covariance positive definite.
+Every estimate of index k gets the
 smoothed state of k; a floor change starts a new interval. Nothing here needs the tracker: it
 runs on what the server stores.
 
