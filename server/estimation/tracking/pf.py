@@ -15,12 +15,14 @@ resampled only when N_eff < resample_threshold·N, as after a fix: fewer resampl
 the cloud less impoverished (on the ``stress`` scenarios of benchmarks/scenario_family.py,
 a PDR far worse than the held-out one, a 1.73 m mean instead of 2.88 and 0.7 % of the
 estimates with a NEES above 50 instead of 4 %), but it did not win on the MSFT walks
-(docs/msft-evaluation.md), so the default stays 1. If every particle would die (the plan disagrees with the walker, or
-the PDR drove the whole cloud into a wall): with a walkable area the cloud is redrawn
-around the last good estimate — positions from N(m, P + d²·I), m and P the estimate
-before the step and d the step length, keeping only draws inside the walkable area (the
-calibration columns resampled from the old particles by weight); without one, or when no
-draw lands inside, the step is applied without the test rather than losing the track.
+(docs/msft-evaluation.md), so the default stays 1.
+
+If every particle would die (the plan disagrees with the walker, or the PDR drove the
+whole cloud into a wall): with a walkable area the cloud is redrawn around the last good
+estimate — positions from N(m, P + d²·I), m and P the estimate before the step and d the
+step length, keeping only draws inside the walkable area (the calibration columns
+resampled from the old particles by weight); without one, or when no draw lands inside,
+the step is applied without the test rather than losing the track.
 Many walls (a real plan) are tested through ``floorplan.WallIndex``.
 Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
 fix.covariance, and resamples when N_eff < resample_threshold·N. A beacon range weighs

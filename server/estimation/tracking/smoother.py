@@ -22,10 +22,9 @@ learned late bends the path before it as that bias rather than as independent no
 that took the smoothed error from 1.45–1.47 to 1.23–1.28 m with wknn fixes and from 0.75–0.77
 to 0.65–0.66 with unbiased ones (``benchmarks/smoother_fullstate.py``, docs/msft-evaluation.md).
 Tracks stored before the states fall back to the position. The whole-state smoother's covariance
-is served calibrated (``SMOOTHED_COV_SCALE``) and every smoothed covariance positive definite.
-Every estimate of index k gets the
-smoothed state of k; a floor change starts a new interval. Nothing here needs the tracker: it
-runs on what the server stores.
+is served calibrated (``SMOOTHED_COV_SCALE``), and every smoothed covariance positive definite.
+Every estimate of index k gets the smoothed state of k; a floor change starts a new interval.
+Nothing here needs the tracker: it runs on what the server stores.
 
 So it needs neither the filter's kind nor the steps and fixes themselves: the process noise
 of step k is read off the stored covariances, Q_k = P_{k+1|k} − F_k P_{k|k} F_kᵀ (the growth from the
