@@ -25,13 +25,7 @@ resampled from the old particles by weight); without one, or when no draw lands 
 the step is applied without the test rather than losing the track.
 Many walls (a real plan) are tested through ``floorplan.WallIndex``.
 Update multiplies the weights by the Gaussian likelihood N(z; x_i, R), R =
-fix.covariance, and resamples when N_eff < resample_threshold·N. The self-calibrating ``pf``
-uses a Student-t likelihood instead, t_ν(z; x_i, R) ∝ (1 + d_i²/ν)^−(ν+2)/2 with d_i² the
-particle's squared Mahalanobis distance and ν = ``fixnoise.STUDENT_NU`` (4, the Gaussian
-filters' fix weighting), so a fix far from some particles lowers them without wiping them
-out: one wrong fix no longer collapses the cloud. Chosen on the simulator's stress split
-against the Gaussian (docs/msft-evaluation.md, "The PF's fix likelihood"): held-out with the
-loop's plan 1.19 → 1.05 m and NEES mean 2.6·10⁷ → 2.2; the MSFT walks within their seed spread. A beacon range weighs
+fix.covariance, and resamples when N_eff < resample_threshold·N. A beacon range weighs
 in log-range (``measurements.log_range``: the path-loss model's error is log-normal), so a
 strong reading of a far beacon does not leave a single particle alive.
 
@@ -61,7 +55,6 @@ import numpy as np
 from server.estimation import floorplan  # (a module: floorplan imports tracking.geometry)
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
-from server.estimation.tracking.fixnoise import STUDENT_NU
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
 from server.estimation.tracking.measurements import MIN_LOG_RANGE_M, log_range, parse_on_wall, range_usable
 from server.estimation.tracking.packed import (
@@ -96,8 +89,6 @@ KLD_EPSILON = 0.15
 class ParticleFilterXYTracker(Tracker):
     name = "pf-xy"
     supports_range = True
-    #: degrees of freedom of the per-particle Student-t fix likelihood (None: Gaussian)
-    fix_nu: float | None = None
     #: columns of a particle (2: [x, y]; 4 with the calibration)
     dim: int = 2
     particles: np.ndarray  # (n, dim), set by reset() and _load_state()
@@ -168,8 +159,7 @@ class ParticleFilterXYTracker(Tracker):
         R = fix_cov(fix.covariance)
         diff = self.particles[:, :2] - np.asarray(fix.mean, float)
         maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
-        nu = self.fix_nu
-        self._reweight(-0.5 * maha if nu is None else -0.5 * (nu + 2.0) * np.log1p(maha / nu))
+        self._reweight(-0.5 * maha)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
         if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
@@ -362,7 +352,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
 
     name = "pf"
     dim = 4
-    fix_nu = STUDENT_NU
 
     def _configure(
         self,
