@@ -298,23 +298,24 @@ def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Re
     return out
 
 
-def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> dict:
-    r = replay(name, w, fixes, site, batch_s)
-    truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
-    truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
+def errors_and_nees(track, truth_by_t: dict) -> tuple[list[float], list[float]]:
+    """Every estimate's error (m) and every step estimate's position NEES, against the truth at its time."""
     errors, nees = [], []
-    for e in r.track:
+    for e in track:
         d = np.array([e.x, e.y]) - truth_by_t[e.t]
         errors.append(float(np.hypot(*d)))
         if e.source == "step":
             nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+    return errors, nees
+
+
+def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> dict:
+    r = replay(name, w, fixes, site, batch_s)
+    truth_by_t = {s.t: p for s, p in zip(w.steps, w.truth[1:], strict=True)}
+    truth_by_t.update({s.t: p for s, p in zip(w.scans, w.scan_truth, strict=True)})
+    errors, nees = errors_and_nees(r.track, truth_by_t)
     nis = [d2 for d2, _ in r.innovations]
-    smoothed, smoothed_nees = [], []
-    for e in smooth_track(r.track, site.walkable, r.states):
-        d = np.array([e.x, e.y]) - truth_by_t[e.t]
-        smoothed.append(float(np.hypot(*d)))
-        if e.source == "step":
-            smoothed_nees.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+    smoothed, smoothed_nees = errors_and_nees(smooth_track(r.track, site.walkable, r.states), truth_by_t)
     return {"errors": errors, "smoothed": smoothed, "smoothed_nees": smoothed_nees, "nees": nees, "nis": nis,
             "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
             "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
@@ -361,8 +362,8 @@ def table(results: list[dict], methods) -> list[dict]:
             smoothed_nees = np.concatenate([r[m]["smoothed_nees"] for r in results])
             row["smoothed_nees"] = float(np.mean(smoothed_nees))
             row["smoothed_nees_p50"] = float(np.median(smoothed_nees))
-            row["nees"] = float(np.mean(np.concatenate([r[m]["nees"] for r in results])))
             nees = np.concatenate([r[m]["nees"] for r in results])
+            row["nees"] = float(np.mean(nees))
             row["nees_p50"] = float(np.median(nees))
             row["nees_over_50_pct"] = 100.0 * float(np.mean(nees > 50))
             nis = np.concatenate([r[m]["nis"] for r in results])
