@@ -189,11 +189,11 @@ class ParticleFilterXYTracker(Tracker):
         """Move the particles to ``moved`` (same columns), killing those whose move crosses a
         wall or ends outside the walkable area; the rule when all would die is the module's.
         The moved particles are on their grid already (rounded before the walls judged them; a
-        resampling only picks rows of them), so only a redraw's need rounding again."""
+        resampling only picks rows of them), so only a redraw's need rounding again; the weights
+        are as stored whenever they changed (a kill renormalises them, a resampling makes them
+        uniform)."""
         if self._move(moved, step_m):
             self._quantize()
-        else:
-            self.weights = weights_as_stored(self.weights)
 
     def _move(self, moved: np.ndarray, step_m: float) -> bool:
         """``_settle``'s move; True when the particles were redrawn."""
@@ -211,6 +211,8 @@ class ParticleFilterXYTracker(Tracker):
             p = self.params
             if p["resample_kills"] or effective_sample_size(self.weights) < p["resample_threshold"] * len(moved):
                 self._resample()
+            else:
+                self.weights = weights_as_stored(self.weights)
             return False
         if self.walkable is not None:
             redrawn = self._redraw(old, step_m)
@@ -264,7 +266,7 @@ class ParticleFilterXYTracker(Tracker):
             n = kld_count(self.particles[self.weights > 0, :2], p["kld_bin_m"], p["kld_epsilon"],
                           p["min_particles"], n)
         idx = systematic_resample(self.weights, float(self.rng.random()), n)
-        self.particles = self.particles[idx]
+        self.particles = np.asfortranarray(self.particles[idx])
         self.weights = weights_as_stored(np.full(n, 1.0 / n))
 
     def _quantize(self) -> None:
@@ -276,7 +278,9 @@ class ParticleFilterXYTracker(Tracker):
     def _round(self, points: np.ndarray, refit: bool) -> np.ndarray:
         """Rows of particles as stored: each column on a grid of 256 values (``packed``), the
         one it is on already unless ``refit`` (then rounding again changes nothing), else one
-        fitted to its values; float32 values when a value is not finite."""
+        fitted to its values; float32 values when a value is not finite. Column-major (a
+        particle's columns are reduced and moved one at a time: 10× faster than row-major)."""
+        points = np.asfortranarray(points)
         if not np.all(np.isfinite(points)):
             self._grid = None
             return points.astype(np.float32).astype(float)
@@ -331,7 +335,7 @@ class ParticleFilterXYTracker(Tracker):
         n = particles.size // self.dim
         if not 2 <= n <= self.params["n_particles"] or particles.size != n * self.dim:
             raise ValueError(f"stored particles do not fit {self.params['n_particles']} × {self.dim}")
-        self.particles = particles.reshape(n, self.dim)
+        self.particles = np.asfortranarray(particles.reshape(n, self.dim))
         self.weights = unpack_weights(state["weights"], n)
         self.rng = rng_from_state(state["rng"])
         # as stored, not rounded again: the grid was fitted to the values before their rounding
@@ -377,7 +381,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         P[:, 3] = np.clip(P[:, 3] + self._cal["scale_walk"] * rng.standard_normal(n), *selfcal.SCALE_RANGE)
         d = P[:, 3] * (step.length_m + step.length_std_m * rng.standard_normal(n))
         h = math.radians(step.heading_deg) + P[:, 2] + math.radians(step.heading_std_deg) * rng.standard_normal(n)
-        moved = P.copy()
+        moved = P.copy(order="F")
         moved[:, 0] += d * np.sin(h)
         moved[:, 1] += d * np.cos(h)
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
