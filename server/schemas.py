@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -414,11 +415,39 @@ class Health(BaseModel):
 # --- models and locate -------------------------------------------------------------------
 
 
+#: the largest integer every JSON reader keeps exactly (an IEEE double's); a model's params are stored as JSON
+MAX_JSON_INT = 2**53
+
+
+def _storable(value: Any, path: str = "params") -> None:
+    """ValueError naming the first value of a model's params that JSON cannot carry faithfully:
+    an integer beyond ±2⁵³ or a float that is not finite (nested lists and objects are walked)."""
+    if isinstance(value, bool) or isinstance(value, str) or value is None:
+        return
+    if isinstance(value, int):
+        if abs(value) > MAX_JSON_INT:
+            raise ValueError(f"{path} = {value} is out of range (an integer must be within ±2^53)")
+    elif isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"{path} must be a finite number")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _storable(v, f"{path}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _storable(v, f"{path}.{i}")
+
+
+def _storable_params(params: dict[str, Any]) -> dict[str, Any]:
+    _storable(params)
+    return params
+
+
 class ModelIn(Strict):
     algorithm: Annotated[str, StringConstraints(min_length=1, max_length=40)] = Field(
         "wknn", description="The fingerprint algorithm to train (default `wknn`, extension: the field was required).",
         json_schema_extra=_ALGORITHM_ENUM)
-    params: Annotated[dict[str, Any], Field(max_length=50)] = {}
+    params: Annotated[dict[str, Any], Field(max_length=50), AfterValidator(_storable_params)] = {}
     use_heading: bool = False
     kinds: Annotated[list[Literal["wifi", "ble"]], Field(min_length=1, max_length=2)] | None = None
     include_crowd: bool = Field(True, description="Train on crowdsourced fingerprints too (extension).")

@@ -237,6 +237,8 @@ def read_plan(geojson: Any, transform: Transform | None = None, *, bbox_size: tu
     else:
         bounds = [g.boundary for g in obstacles]
     walls = np.concatenate([_segments(g) for g in bounds + lines]) if bounds + lines else np.zeros((0, 4))
+    if walkable is None and len(walls) == 0:
+        raise PlanError("the plan gives neither a wall nor a walkable area (its shapes have no area or length)")
     return FloorPlan(walls=walls, walkable=None if walkable is None else _rings(walkable), transform=transform)
 
 

@@ -75,6 +75,10 @@ def test_a_pf_session_on_the_floor_stays_out_of_the_store(admin, device, site):
      "non-finite coordinates"),
     ({"geojson": plan_geojson(), "transform": {"matrix": [[1e300, 0, 0], [0, 1e300, 0]]}}, "transform",
      "out of range"),
+    # a polygon without area (all its corners one point) gives nothing: refused, not a floor without walls
+    ({"geojson": {"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, "geometry": {
+        "type": "Polygon", "coordinates": [[[3, 3], [3, 3], [3, 3], [3, 3]]]}}]},
+      "transform": {"matrix": [[1, 0, 0], [0, 1, 0]]}}, "geojson", "neither a wall nor a walkable area"),
 ])
 def test_bad_plans_are_422_naming_the_problem(admin, site, snapshot, body, field, message):
     before = snapshot()

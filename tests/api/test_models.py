@@ -133,6 +133,8 @@ def test_activating_a_model_that_is_not_ready_is_409(admin, site):
     [
         ({"algorithm": "deep-magic"}, "algorithm"),
         ({"algorithm": "knn", "params": {"k": 3, "bogus": 1}}, "params"),
+        ({"algorithm": "knn", "params": {"k": 2**66}}, "params"),  # beyond what the stored JSON holds
+        ({"algorithm": "knn", "params": {"k": 3, "floor_k": [1, -(2**60)]}}, "params"),
         ({"algorithm": "knn", "kinds": ["lte"]}, "kinds"),
         ({"algorithm": "knn", "kinds": []}, "kinds"),
     ],
