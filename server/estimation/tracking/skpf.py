@@ -236,6 +236,24 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         self.x, self.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
         self._last_weights: tuple[float, ...] | None = None
 
+    # The state is held as Python floats (``_x``: 4; ``_P``: 4 rows of 4), what predict and
+    # update compute on; ``x`` and ``P`` are its arrays.
+    @property
+    def x(self) -> np.ndarray:
+        return np.array(self._x)
+
+    @x.setter
+    def x(self, value) -> None:
+        self._x = tuple(np.asarray(value, float).reshape(4).tolist())
+
+    @property
+    def P(self) -> np.ndarray:
+        return np.array(self._P)
+
+    @P.setter
+    def P(self, value) -> None:
+        self._P = tuple(map(tuple, np.asarray(value, float).reshape(4, 4).tolist()))
+
     @property
     def last_weights(self) -> np.ndarray | None:
         """Normalised likelihood weights of the position sigma points at the last update."""
@@ -247,18 +265,15 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         # JulierSigmaPoints + unscented_transform by the tests.
         h = math.radians(step.heading_deg)
         d = step.length_m
-        x0, x1, x2, x3 = self.x.tolist()
-        (a00, a01, a02, a03), (_, a11, a12, a13), (_, _, a22, a23), (_, _, _, a33) = self.P.tolist()
+        x0, x1, x2, x3 = self._x
+        (a00, a01, a02, a03), (_, a11, a12, a13), (_, _, a22, a23), (_, _, _, a33) = self._P
         pts = []
         for c0, c1, c2, c3 in _chol4(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33):
             c0, c1, c2, c3 = _SQRT_N4 * c0, _SQRT_N4 * c1, _SQRT_N4 * c2, _SQRT_N4 * c3
             for b, sc, e0, e1 in ((x2 + c2, x3 + c3, x0 + c0, x1 + c1), (x2 - c2, x3 - c3, x0 - c0, x1 - c1)):
                 sd = sc * d
                 pts.append((e0 + sd * math.sin(h + b), e1 + sd * math.cos(h + b), b, sc))
-        m0 = sum(p[0] for p in pts) * _W4
-        m1 = sum(p[1] for p in pts) * _W4
-        m2 = sum(p[2] for p in pts) * _W4
-        m3 = sum(p[3] for p in pts) * _W4
+        m0, m1, m2, m3 = (sum(v) * _W4 for v in zip(*pts, strict=True))
         c00 = c01 = c02 = c03 = c11 = c12 = c13 = c22 = c23 = c33 = 0.0
         for p0, p1, p2, p3 in pts:  # Σ (χ − x⁻)(χ − x⁻)ᵀ, its upper triangle
             d0, d1, d2, d3 = p0 - m0, p1 - m1, p2 - m2, p3 - m3
@@ -284,13 +299,13 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         c01 = w * c01 + sc2 * sa * ca * (vd - vdh)
         c02, c03, c12, c13 = w * c02, w * c03, w * c12, w * c13
         c22, c23, c33 = w * c22 + q[2], w * c23, w * c33 + q[3]
-        self.x = np.array((m0, m1, m2, m3))
-        self.P = np.array(((c00, c01, c02, c03), (c01, c11, c12, c13), (c02, c12, c22, c23), (c03, c13, c23, c33)))
+        self._x = (m0, m1, m2, m3)
+        self._P = ((c00, c01, c02, c03), (c01, c11, c12, c13), (c02, c12, c22, c23), (c03, c13, c23, c33))
 
     def update(self, fix: Fix) -> None:
         r00, r01, r11 = fix_cov_entries(fix.covariance)
-        x0, x1, x2, x3 = self.x.tolist()
-        P = self.P.tolist()
+        x0, x1, x2, x3 = self._x
+        P = self._P
         p00, p01, p11 = P[0][0], P[0][1], P[1][1]
         # Position: the seed form's rule on the position marginal (its 4 sigma points).
         pos0, pos1, self._last_weights = _reweighted_mean(x0, x1, p00, p01, p11, float(fix.x), float(fix.y),
@@ -310,24 +325,25 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         K = [(row[0] * i00 + row[1] * i01, row[0] * i01 + row[1] * i11) for row in P]  # P[:, :2] S⁻¹
         n00, n01, n02, n03, n11, n12, n13, n22, n23, n33 = (
             P[i][k] - (K[i][0] * P[k][0] + K[i][1] * P[k][1]) for i, k in _UPPER4)
-        self.x = np.array((pos0, pos1, *selfcal.clamp_calibration(b, sc)))
-        self.P = np.array(((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33)))
+        self._x = (pos0, pos1, *selfcal.clamp_calibration(b, sc))
+        self._P = ((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33))
 
     @property
     def state_mean(self) -> np.ndarray:
-        return self.x.copy()
+        return self.x
 
     @property
     def state_covariance(self) -> np.ndarray:
-        return self.P.copy()
+        return self.P
 
     @property
     def mean(self) -> np.ndarray:
-        return self.x[:2].copy()
+        return np.array(self._x[:2])
 
     @property
     def covariance(self) -> np.ndarray:
-        return self.P[:2, :2].copy()
+        (p00, p01, _, _), (_, p11, _, _) = self._P[:2]
+        return np.array(((p00, p01), (p01, p11)))
 
     def reset(self, mean, cov) -> None:
         self.x, self.P = selfcal.reset_position(self.x, self.P, as_mean(mean), as_cov(cov))
