@@ -118,26 +118,28 @@ def fit_grid(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _codes(a: np.ndarray, lo: np.ndarray, step: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        k = np.rint((a - lo) / step)
-    return np.where(step > 0, k, 0.0)
+    """Each value's grid index rint((a − lo)/step) as floats (0 in a column without spread), not
+    yet clipped to the grid; computed in place on one array of ``a``'s layout (a hot path)."""
+    k = np.subtract(a, lo, order="K")
+    np.divide(k, np.where(step > 0, step, 1.0), out=k)
+    np.rint(k, out=k)
+    if not np.all(step > 0):
+        k[..., step <= 0] = 0.0
+    return k
 
 
-def _values(codes: np.ndarray, lo: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """lo + k·step (float64): the one expression both rounding and loading use."""
-    return lo + codes.astype(float) * step
+def _values(codes: np.ndarray, lo: np.ndarray, step: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """k·step + lo (float64): the one expression both rounding and loading use (into ``out``,
+    which may be ``codes`` itself, when given)."""
+    v = np.multiply(codes, step, out=out, dtype=float)
+    v += lo
+    return v
 
 
 def snap(a: np.ndarray, lo: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """Rows of ``a`` on the grid (values outside it are taken to its ends): lo + k·step as
-    ``_values`` computes it, in place on one array of ``a``'s layout (a particle set's hot path)."""
-    k = np.subtract(a, lo, order="K")
-    np.divide(k, np.where(step > 0, step, 1.0), out=k)  # (a column of one value: k = 0)
-    np.rint(k, out=k)
-    np.clip(k, 0, LEVELS, out=k)
-    k *= step
-    k += lo
-    return k
+    """Rows of ``a`` on the grid (values outside it are taken to its ends)."""
+    k = _codes(a, lo, step)
+    return _values(np.clip(k, 0, LEVELS, out=k), lo, step, out=k)
 
 
 def on_grid(a: np.ndarray, lo: np.ndarray, step: np.ndarray) -> np.ndarray:
