@@ -33,7 +33,8 @@ CHOOSE = {2, 6, 7, 14}
 REPORT = {4, 8, 10, 13, 17, 18}
 
 CANDIDATES: dict[str, tuple[str, dict]] = {
-    "knn (previous default)": ("knn", {}),
+    "knn (k=3, 1/d weights: the default)": ("knn", {}),
+    "knn, uniform weights": ("knn", {"weights": "uniform"}),
     "wknn powed sorensen": ("wknn", {"missing": "powed"}),
     "wknn powed sorensen, no offset estimate": ("wknn", {"missing": "powed", "offset_estimate": False}),
     "wknn powed sorensen, offset search ±6 dB": ("wknn", {"missing": "powed", "offset_estimate": False,
@@ -105,7 +106,7 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="semicolon-separated substrings of candidate names")
     ap.add_argument("--report-models", help="semicolon-separated candidate names measured on REPORT",
                     default="wknn exponential sorensen (chosen: the default);wknn exponential sorensen, no offset estimate;"
-                            "wknn positive sorensen;wknn powed sorensen;knn (previous default)")
+                            "wknn positive sorensen;wknn powed sorensen;knn (k=3, 1/d weights: the default)")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(DATA)
     user = fs.user.astype(int)

@@ -102,7 +102,7 @@ def test_sqlite_model_ids_become_autoincrement_without_losing_any_models_data(tm
     engine.dispose()
     before = _rows(url, "models", "model_artifacts", "tracking_sessions")
 
-    migrate.upgrade(url)
+    migrate.upgrade(url, "0009_track_states")  # (0010 retrains the ready knn model: its own test below)
     assert _rows(url, "models", "model_artifacts", "tracking_sessions") == before
     db = Database(url)
     with db.engine.begin() as conn:
@@ -189,3 +189,79 @@ def test_buildings_migration_keeps_v1_rows_in_building_0(tmp_path):
     with engine.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), Base.metadata) == []
     engine.dispose()
+
+
+def _previous_knn_artifact() -> bytes:
+    """An artifact as the knn before 0010 left it: its state holds the ``dist_`` of its own search."""
+    import numpy as np
+
+    from server.estimation.fingerprint import FingerprintSet, make_model, to_bytes
+
+    model = make_model("knn").fit(FingerprintSet.from_rows(
+        [{"x": float(i), "y": 0.0, "floor": 0, "rss": {"wifi:a": -40.0 - 5 * i, "wifi:b": -70.0 + 5 * i}} for i in range(4)]))
+    model.dist_ = np.zeros(1)
+    return to_bytes(model)
+
+
+def test_knn_models_are_trained_again_with_the_rebuilt_knn(tmp_path):
+    """0010 sends every ready knn model back to the queue without its artifact (which the rebuilt
+    knn refuses); the worker's retrain makes each ready again, active as it was, and loadable.
+    Other models, and knn models that were not ready, are left as they were."""
+    import math
+
+    import pytest
+    from sqlalchemy import text
+
+    from server.db import Database
+    from server.domain import FingerprintRecord, ModelSpec, NewSite
+    from server.estimation.fingerprint import ArtifactError, KNNModel, from_bytes
+    from server.services.training import TrainingWorker
+    from server.store import models, sites, surveys
+
+    url = scratch_database_url(tmp_path, "knn_retrain")
+    migrate.upgrade(url, "0009_track_states")
+    aps = {"wifi:a": (0.0, 0.0), "wifi:b": (12.0, 0.0), "wifi:c": (0.0, 9.0), "wifi:d": (12.0, 9.0)}
+    survey = [FingerprintRecord(float(x), float(y), 0, {t: -40.0 - 20.0 * math.log10(1.0 + math.hypot(x - ax, y - ay)) - d
+                                                        for t, (ax, ay) in aps.items()}, device=f"phone{d}")
+              for x in range(0, 13, 3) for y in range(0, 10, 3) for d in range(3)]
+    old_blob = _previous_knn_artifact()
+    with pytest.raises(ArtifactError, match="previous knn"):
+        from_bytes(old_blob)
+    db = Database(url)
+    with db.transaction() as s:
+        site = sites.add_site(s, NewSite(name="a")).id
+        surveys.add_survey(s, site, survey, None, 0)
+        ids = [models.add_model(s, site, ModelSpec(algorithm, {})).id for algorithm in ("knn", "knn", "wknn", "knn")]
+    with db.engine.begin() as conn:
+        for model_id, status, active in zip(ids, ("ready", "ready", "ready", "failed"), (True, False, False, False),
+                                            strict=True):
+            conn.execute(text("UPDATE models SET status = :status, active = :active WHERE id = :id"),
+                         {"status": status, "active": active, "id": model_id})
+        for model_id in ids[:3]:
+            conn.execute(text("INSERT INTO model_artifacts (model_id, sha256, blob) VALUES (:id, :sha, :blob)"),
+                         {"id": model_id, "sha": f"sha{model_id}", "blob": old_blob})
+    before = _rows(url, "models", "model_artifacts")
+
+    migrate.upgrade(url)
+    after = {r[0]: r for r in _rows(url, "models")["models"]}
+    with db.transaction() as s:
+        info = {i: models.training_job(s, i) for i in ids}
+        assert [info[i].status for i in ids] == ["queued", "queued", "ready", "failed"]
+        assert [info[i].active for i in ids] == [True, False, False, False]
+        assert [info[i].activate for i in ids[:2]] == ["always", "never"]
+        assert models.model_artifact(s, ids[0]) is None and models.model_artifact(s, ids[1]) is None
+    assert [after[i] for i in ids[2:]] == [r for r in before["models"] if r[0] in ids[2:]]
+    assert _rows(url, "model_artifacts")["model_artifacts"] == [r for r in before["model_artifacts"] if r[0] == ids[2]]
+
+    worker = TrainingWorker(url)
+    assert worker.run_pending() == 2
+    worker.stop()
+    with db.transaction() as s:
+        retrained = [models.training_job(s, i) for i in ids[:2]]
+        assert [(m.status, m.active) for m in retrained] == [("ready", True), ("ready", False)]
+        assert models.active_model(s, site).id == ids[0]
+        model = from_bytes(models.model_artifact(s, ids[0]).blob)
+    assert isinstance(model, KNNModel)
+    fix = model.locate(dict(survey[0].rss))
+    assert math.hypot(fix.x - survey[0].x, fix.y - survey[0].y) < 3.0
+    db.dispose()

@@ -209,8 +209,9 @@ def test_walkable_polygons_round_trip_and_bad_ones_are_422(admin):
 
 
 def test_locate_flags_a_scan_that_resembles_nothing_surveyed(admin, device, campus):
-    """wknn says whether a scan is in coverage: scans at surveyed spots are, a scan hearing both buildings'
-    transmitters loudly at once (no place hears that) is not; models that cannot tell answer null."""
+    """wknn (and knn, its search with k fixed) says whether a scan is in coverage: scans at surveyed spots
+    are, a scan hearing both buildings' transmitters loudly at once (no place hears that) is not; models
+    that cannot tell answer null."""
     wknn = train(admin, campus, "wknn")
     rng = np.random.default_rng(21)
     url = f"/api/v1/sites/{campus['id']}/locate"
@@ -221,7 +222,10 @@ def test_locate_flags_a_scan_that_resembles_nothing_surveyed(admin, device, camp
     nowhere = {t["id"]: -35.0 for site in BUILDINGS.values() for t in site.transmitters}
     fix = device.post(url, json={"rss": nowhere}).json()
     assert fix["in_coverage"] is False and fix["coverage_ratio"] > 1, fix
-    knn = train(admin, campus, "knn", activate=False)
+    knn = train(admin, campus, "knn", activate=False)  # wknn's search with k fixed: it can tell too
     fix = device.post(url, json={"rss": nowhere, "model_id": knn["id"]}).json()
+    assert fix["in_coverage"] is False and fix["coverage_ratio"] > 1, fix
+    nbc = train(admin, campus, "nbc", activate=False)
+    fix = device.post(url, json={"rss": nowhere, "model_id": nbc["id"]}).json()
     assert fix["in_coverage"] is None and fix["coverage_ratio"] is None
     assert device.post(url, json={"rss": nowhere, "model_id": wknn["id"]}).json()["in_coverage"] is False

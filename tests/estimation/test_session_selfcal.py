@@ -14,8 +14,13 @@ from server.estimation.types import SiteMap
 from tests.estimation.test_session_walk import ModelFixes, corridor_walk
 
 
-def _run(name: str, fixes: ModelFixes, seed: int = 2):
+def _run(name: str, fixes: ModelFixes, seed: int = 2, outage: float | None = None):
+    """The walk's step errors and the learned heading bias per step; ``outage``: the scans of the
+    walk's last fraction ``outage`` are dropped (a stretch without fixes)."""
     truth, steps, scans = corridor_walk(seed=seed, laps=3)  # PDR heading +4°, steps 5 % long
+    if outage is not None:
+        t_out = steps[int(len(steps) * (1.0 - outage))].t
+        scans = [s for s in scans if s.t < t_out]
     est = SessionEstimator(name, seed=1)
     est.start([0.0, 0.0], None, 0, [], None, "init")
     track, biases, t_end = [], [], 2.0
@@ -40,14 +45,17 @@ def fixes() -> ModelFixes:
 
 @pytest.mark.parametrize("name", ["ekf", "skpf"])
 def test_the_heading_bias_is_learned_through_the_session(name, fixes):
-    """The bias is learned on each walk, and over three walks the second halves are better
-    than the seed form's (on one walk of fix-dominated tracking the two can tie)."""
+    """The bias is learned on each walk; then, in a lap without fixes, the dead reckoning it
+    corrects drifts far less than the seed form's. (Where fixes come every 1.5 s, as in the first
+    two laps, the track is fix-dominated and the two forms are within 0.1 m of each other.)"""
     ours, seeds = [], []
     for seed in (2, 3, 4):
-        err, biases = _run(name, fixes, seed)
+        _, biases = _run(name, fixes, seed)
         half = len(biases) // 2
         assert np.mean(biases[half:]) == pytest.approx(-4.0, abs=2.0), (name, seed)
-        seed_err, _ = _run(f"{name}-xy", fixes, seed)
-        ours.append(err[half:].mean())
-        seeds.append(seed_err[half:].mean())
-    assert np.mean(ours) < np.mean(seeds), (name, ours, seeds)
+        err, _ = _run(name, fixes, seed, outage=1 / 3)
+        seed_err, _ = _run(f"{name}-xy", fixes, seed, outage=1 / 3)
+        last = len(err) * 2 // 3
+        ours.append(err[last:].mean())
+        seeds.append(seed_err[last:].mean())
+    assert np.mean(ours) < 0.6 * np.mean(seeds), (name, ours, seeds)

@@ -404,8 +404,9 @@ class FingerprintModel:
             return 1.0
         return max(0.5, 0.5 * float(np.median(np.concatenate(spacings))))
 
-    @staticmethod
-    def _auto_heading_weight(X: np.ndarray, row_rp: np.ndarray) -> float:
+    def _auto_heading_weight(self, X: np.ndarray, row_rp: np.ndarray) -> float:
+        """Half the typical distance, in the model's own distance, between a fingerprint and
+        the mean of its reference point's (points with one fingerprint do not count)."""
         n_rp = row_rp.max() + 1 if len(row_rp) else 0
         if n_rp == 0:
             return 0.0
@@ -413,10 +414,14 @@ class FingerprintModel:
         mean = np.zeros((n_rp, X.shape[1]))
         np.add.at(mean, row_rp, X)
         mean /= np.maximum(counts, 1)[:, None]
-        d2 = ((X - mean[row_rp]) ** 2).sum(axis=1)
-        d2 = d2[counts[row_rp] > 1]
-        typical = float(np.sqrt(np.median(d2))) if len(d2) else 0.1
+        own = counts[row_rp] > 1
+        typical = self._typical_distance(X[own], mean[row_rp[own]]) if own.any() else 0.1
         return 0.5 * max(typical, 1e-3)
+
+    def _typical_distance(self, X: np.ndarray, M: np.ndarray) -> float:
+        """The median distance between the rows of ``X`` and ``M``: Euclidean here; a model
+        searching with another distance overrides it."""
+        return float(np.sqrt(np.median(((X - M) ** 2).sum(axis=1))))
 
     def _check_fitted(self) -> None:
         if not hasattr(self, "tx_ids_"):

@@ -1,62 +1,43 @@
-"""K nearest neighbours in RSS space (over individual fingerprints).
+"""K nearest neighbours over individual fingerprints, k fixed (DESIGN: k = 3, weighted variant).
 
-Floor first: the ``floor_k`` nearest fingerprints vote (weighted) for a
-(building, floor); then the ``k`` nearest fingerprints *of that floor* give the
-posterior over reference points (weights uniform or 1/distance).
+The same search as ``wknn`` (wknn.py: building → floor → position, Sørensen distance over
+the exponential RSS representation, the per-query RSS offset estimate, cleaning, the
+calibrated covariance), with ``k`` given rather than chosen by cross-validation and the
+neighbours weighted by 1/d ("distance", default) or equally ("uniform").
+
+Why not a KNN of its own: the previous ``knn`` (squared Euclidean distance over the floor
+representation, an SVC picking the floor) was no better than a bare scikit-learn KNN on
+UJIIndoorLoc's held-out users (docs/fingerprint-results.md, "knn rebuilt on wknn's
+search"): its representation and distance, not its k, were what held it back.
+
+Artifacts of the previous ``knn`` (``dist_`` in their state) are refused with
+ArtifactError; migration 0010 re-queues such models so the server retrains them.
 """
 
 from __future__ import annotations
 
-import numpy as np
-
-from .base import FingerprintModel, TrainingData
-from .distance import SquaredDistance, row_sums, smallest_columns
+from .artifact import ArtifactError
+from .wknn import WKNNModel
 
 WEIGHTS = ("uniform", "distance")
 
 
-class KNNModel(FingerprintModel):
-    """k: neighbours for the position (default 3); weights: "distance" (1/d) or
-    "uniform"; floor_k: neighbours that vote for the floor (None = max(k, 10))."""
+class KNNModel(WKNNModel):
+    """k: neighbours for the position (default 3); weights: "distance" (1/d) or "uniform";
+    floor_k: neighbours that vote for the floor (None = max(k, 10)). Every ``wknn``
+    parameter but ``k_grid`` applies too (``k_grid`` is ignored: k is not chosen)."""
 
     name = "knn"
 
     def __init__(self, k: int = 3, weights: str = "distance", floor_k: int | None = None, **common):
-        super().__init__(**common)
         if weights not in WEIGHTS:
             raise ValueError(f"weights must be one of {WEIGHTS}")
-        self.k = int(k)
-        if self.k < 1 or (floor_k is not None and int(floor_k) < 1):
+        if k is None or int(k) < 1 or (floor_k is not None and int(floor_k) < 1):
             raise ValueError("k and floor_k must be at least 1")
+        super().__init__(k=int(k), floor_k=max(int(k), 10) if floor_k is None else int(floor_k), **common)
         self.weights = weights
-        self.floor_k = floor_k
 
-    def _fit(self, X, H, data: TrainingData) -> None:
-        self.dist_ = SquaredDistance(X, H, self.heading_weight_)
-        self.row_rp_ = data.rp.row_rp
-        self.row_group_ = data.row_group
-
-    def _weights(self, d2: np.ndarray) -> np.ndarray:
-        if self.weights == "uniform":
-            return np.where(np.isfinite(d2), 1.0, 0.0)
-        return np.where(np.isfinite(d2), 1.0 / (np.sqrt(d2) + 1e-6), 0.0)
-
-    def _log_scores(self, Q, Hq, mask):
-        d2 = self.dist_(Q, Hq)
-        if mask is not None:
-            d2 = np.where(mask[:, self.row_rp_], d2, np.inf)
-        rows = np.arange(len(d2))[:, None]
-        n_groups = len(self.group_floor_)
-        # with a floor classifier, ``_predict``'s mask holds one (building, floor) per query: a
-        # vote among its points would only pick that group again
-        if n_groups > 1 and (mask is None or getattr(self, "floor_clf_", None) is None):
-            fk = self.floor_k if self.floor_k is not None else max(self.k, 10)
-            idx = smallest_columns(d2, fk)
-            w = self._weights(d2[rows, idx])
-            g = np.argmax(row_sums(self.row_group_[idx], w, n_groups), axis=1)
-            d2 = np.where(self.row_group_[None, :] == g[:, None], d2, np.inf)
-        idx = smallest_columns(d2, self.k)
-        w = self._weights(d2[rows, idx])
-        scores = row_sums(self.row_rp_[idx], w, len(self.rp_xy_))
-        with np.errstate(divide="ignore"):
-            return np.log(scores)
+    def __setstate__(self, state: dict) -> None:
+        if "dist_" in state:
+            raise ArtifactError("artifact of the previous knn (before it was built on wknn's search): retrain the model")
+        super().__setstate__(state)

@@ -115,6 +115,7 @@ class WKNNModel(FingerprintModel):
     the cross-validation (k and calibration)."""
 
     name = "wknn"
+    weights = "distance"  # neighbours weighted 1/d; knn.py's subclass may weigh them equally
     CANDIDATES = 96  # nearest fingerprints per query the hierarchy is resolved from
     DERIVED = ("tx_ptr_", "tx_rows_", "tx_vals_", "tx_bounds_")  # rebuilt from XT_ at load, not stored
 
@@ -186,6 +187,13 @@ class WKNNModel(FingerprintModel):
         self.coverage_threshold_ = getattr(self, "reused_coverage_threshold_", float("inf"))
         if self.k is None or self.calibrate is not None:
             self._cross_validate(data, keep_rows)
+
+    def _typical_distance(self, X: np.ndarray, M: np.ndarray) -> float:
+        """Sørensen's median: the heading feature is then weighed on the scale of the distance it
+        is added to (a Euclidean spread of these features is ≈ 10× smaller, too small to count)."""
+        if self.distance != "sorensen":
+            return super()._typical_distance(X, M)
+        return float(np.median(np.abs(X - M).sum(axis=1) / np.maximum((X + M).sum(axis=1), 1e-9)))
 
     def _set_matrix(self, X, rows, H, row_rp, row_group, block: int = 8192) -> None:
         """Store fingerprints ``X[rows]`` as the (m, n) matrix (a transmitter's readings
@@ -478,8 +486,13 @@ class WKNNModel(FingerprintModel):
     def _scores(self, D: np.ndarray, k: int, order: np.ndarray | None = None) -> np.ndarray:
         idx = (nearest_columns(D, k) if order is None else order)[:, :k]
         d = np.take_along_axis(D, idx, axis=1)
-        w = np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
-        return row_sums(self.row_rp_[idx], w, len(self.rp_xy_))
+        return row_sums(self.row_rp_[idx], self._neighbour_weights(d), len(self.rp_xy_))
+
+    def _neighbour_weights(self, d: np.ndarray) -> np.ndarray:
+        """The position's weight of neighbours at distances ``d`` (0 for an infinite one)."""
+        if self.weights == "uniform":
+            return np.where(np.isfinite(d), 1.0, 0.0)
+        return np.where(np.isfinite(d), 1.0 / (d + 1e-6), 0.0)
 
     def coverage(self, rss) -> tuple[np.ndarray, np.ndarray]:
         """(coverage distance, in-coverage flag) per scan — rss as ``predict`` takes it: the
@@ -543,7 +556,7 @@ class WKNNModel(FingerprintModel):
             o, d = o[keep], d[keep]
         o, d = o[: self.k_], d[: self.k_]
         scores = np.zeros(len(self.rp_xy_))
-        np.add.at(scores, self.row_rp_[o], 1.0 / (d + 1e-6))
+        np.add.at(scores, self.row_rp_[o], self._neighbour_weights(d))
         return scores
 
     def _query_scores(self, cand: np.ndarray, d: np.ndarray, mask: np.ndarray | None,
