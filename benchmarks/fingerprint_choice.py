@@ -35,6 +35,12 @@ REPORT = {4, 8, 10, 13, 17, 18}
 CANDIDATES: dict[str, tuple[str, dict]] = {
     "knn (k=3, 1/d weights: the default)": ("knn", {}),
     "knn, uniform weights": ("knn", {"weights": "uniform"}),
+    "knn, no offset estimate": ("knn", {"offset_estimate": False}),
+    "knn, offset estimate from >= 3 transmitters": ("knn", {"offset_min_tx": 3}),
+    "knn, offset estimate from >= 5 transmitters": ("knn", {"offset_min_tx": 5}),
+    "knn, offset estimate from >= 8 transmitters": ("knn", {"offset_min_tx": 8}),
+    "knn, offset estimate from >= 12 transmitters": ("knn", {"offset_min_tx": 12}),
+    "knn, offset estimate from >= 16 transmitters": ("knn", {"offset_min_tx": 16}),
     "wknn powed sorensen": ("wknn", {"missing": "powed"}),
     "wknn powed sorensen, no offset estimate": ("wknn", {"missing": "powed", "offset_estimate": False}),
     "wknn powed sorensen, offset search ±6 dB": ("wknn", {"missing": "powed", "offset_estimate": False,
@@ -44,6 +50,7 @@ CANDIDATES: dict[str, tuple[str, dict]] = {
     "wknn powed euclidean": ("wknn", {"missing": "powed", "distance": "euclidean"}),
     "wknn exponential sorensen (chosen: the default)": ("wknn", {}),
     "wknn exponential sorensen, no offset estimate": ("wknn", {"offset_estimate": False}),
+    "wknn exponential sorensen, offset estimate from >= 8 transmitters": ("wknn", {"offset_min_tx": 8}),
     "wknn positive sorensen": ("wknn", {"missing": "floor"}),
     "wknn positive euclidean": ("wknn", {"missing": "floor", "distance": "euclidean"}),
 }

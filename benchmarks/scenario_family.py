@@ -192,7 +192,7 @@ class World:
             rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
                          "rss": {k: float(np.mean([s.get(k, -100.0) for s in scans])) for k in keys}})
         # as the server's training job fits it: held-out validation, calibrated covariance
-        model, _ = fit_and_validate(lambda: make_model(algorithm, {}, use_heading=False, kinds=None),
+        model, _ = fit_and_validate(lambda: make_model(algorithm, dict(MODEL_PARAMS), use_heading=False, kinds=None),
                                     FingerprintSet.from_rows(rows))
         return model
 
@@ -257,6 +257,7 @@ class GaussianFixes:
 # --------------------------------------------------------------------------- running
 #: the fingerprint model of the ``knn`` fixes (``--algorithm``)
 ALGORITHM = ["knn"]
+MODEL_PARAMS: dict = {}  # the fingerprint model's params (--model-params)
 #: tracker keyword arguments per filter name (``--set``)
 PARAMS: dict[str, dict] = {}
 #: the corridor's width when the floor has the loop's plan (``--plan``; None: no plan)
@@ -402,6 +403,8 @@ def main() -> int:
     ap.add_argument("--cov-scale", type=float, default=1.0,
                     help="multiply the model's (already calibrated) fix covariance by this (default 1: as served)")
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
+    ap.add_argument("--model-params", type=json.loads, default={},
+                    help='the fingerprint model\'s params as JSON, e.g. \'{"offset_estimate": false}\'')
     ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
     ap.add_argument("--plan", action="store_true", help="the floor has the loop's plan (walls and walkable area)")
@@ -410,6 +413,7 @@ def main() -> int:
     a = ap.parse_args()
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
+    MODEL_PARAMS.update(a.model_params)
     CORRIDOR_M[0] = a.corridor_m if a.plan else None
     for item in a.set:
         key, value = item.split("=", 1)

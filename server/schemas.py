@@ -554,7 +554,7 @@ class LocateOut(BaseModel):
     in_coverage: bool | None = Field(
         None, description="Extension: false when the scan resembles nothing surveyed (the answer is then only the "
         "nearest surveyed place): `coverage_ratio` > 1. Null when the model cannot tell (every algorithm but "
-        "`wknn`, or a model trained on too little to measure).")
+        "`wknn` and `knn`, which shares its search, or a model trained on too little to measure).")
     coverage_ratio: float | None = Field(
         None, description="Extension: the scan's RSS distance to the nearest surveyed fingerprint divided by the "
         "model's coverage threshold, the distance that 99 % of scans held out at unsurveyed reference points stayed "

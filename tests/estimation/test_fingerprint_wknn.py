@@ -95,6 +95,25 @@ def test_a_shifted_scan_answers_close_to_the_unshifted_one(site_and_model, shift
     assert err_b.mean() <= 0.75 * err_c.mean(), (err_b.mean(), err_c.mean())
 
 
+def test_the_offset_is_estimated_only_from_enough_shared_transmitters(site_and_model):
+    """With fewer than ``offset_min_tx`` transmitters heard both by a scan and its nearest
+    fingerprints an offset cannot be told from a place, and none is estimated."""
+    site, model = site_and_model
+    _, x, y, f = site.rp[len(site.rp) // 2]
+    scan = {t: v + 6.0 for t, v in site.scan(x, y, f, None, np.random.default_rng(5)).items()}
+    few = dict(sorted(scan.items(), key=lambda kv: -kv[1])[: model.offset_min_tx - 1])
+
+    def offset(m, s):
+        q = m.encoder_.transform(m.scan_matrix([s]))[0]
+        return m._estimate_offset(q, *m._query_distances(q, None))
+
+    assert len(scan) >= model.offset_min_tx == 8
+    assert offset(model, scan) < -0.5  # (a first estimate: the iterations take it further)
+    assert offset(model, few) == 0.0
+    every = make_model("wknn", {"offset_min_tx": 1, "k": model.k_}).fit(model_training_set(site))
+    assert offset(every, few) < -0.5
+
+
 def model_training_set(site):
     return site.survey(scans_per_rp=6, seed=1)
 
@@ -268,7 +287,8 @@ def _reference_case():
     for b, site in enumerate(sites):
         for r in site.survey(scans_per_rp=3, seed=7 + b).to_rows():
             rows.append({**r, "building": b, "label": f"b{b}-{r['label']}", "x": r["x"] + 40.0 * b})
-    model = make_model("wknn").fit(FingerprintSet.from_rows(rows))
+    # the offset estimated from every scan, as when the reference was made (offset_min_tx came later)
+    model = make_model("wknn", {"offset_min_tx": 1}).fit(FingerprintSet.from_rows(rows))
     rng = np.random.default_rng(8)
     scans, near = [], []
     for b, site in enumerate(sites):

@@ -64,8 +64,8 @@ def corridor_walk(seed: int, laps: int = 2, step_m: float = 0.7):
     return np.array(truth), steps, scans
 
 
-def run(name: str, truth, steps, scans, fixes, initial: bool) -> tuple[list, list[BatchOutcome]]:
-    est = SessionEstimator(name, seed=1)
+def run(name: str, truth, steps, scans, fixes, initial: bool, **params) -> tuple[list, list[BatchOutcome]]:
+    est = SessionEstimator(name, seed=1, tracker_params=params)
     if initial:
         est.start([0.0, 0.0], None, 0, [], None, "init")
     outcomes, t_end = [], 2.0
@@ -102,7 +102,8 @@ def test_a_whole_walk_tracks_better_than_its_dead_reckoning(name, fixes):
 def test_a_tracker_that_bounds_its_search_passes_the_area_to_the_fix_source(fixes):
     truth, steps, scans = corridor_walk(seed=2, laps=1)
     before = fixes.restricted
-    run("fkf", truth, steps, scans, fixes, initial=True)  # the fuzzy KF searches near its estimate
+    # the fuzzy KF searches near its estimate (lost_after=0: its box is never released)
+    run("fkf", truth, steps, scans, fixes, initial=True, lost_after=0)
     assert fixes.restricted - before == len(scans)
 
 

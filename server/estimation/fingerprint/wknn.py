@@ -50,7 +50,13 @@ nearest fingerprints over the transmitters both hear; the query is shifted by it
 matched again, ``offset_iterations`` times (each converges a little further: the first
 neighbours of a shifted scan are biased towards the shift). ``offset_search_db``
 (off by default): instead try shifts every ``offset_step_db`` within ±that and keep the
-one whose nearest fingerprint matches best (one distance pass per shift).
+one whose nearest fingerprint matches best (one distance pass per shift). The estimate is
+made only when the query shares at least ``offset_min_tx`` (8) transmitters with those
+neighbours: with fewer, an offset cannot be told from a place (a scan of four APs shifted
+by a few dB resembles another spot of the floor), and the estimate moves fixes along the
+walk together. 8 was chosen on UJIIndoorLoc's choosing users (knn 10.35 → 10.32 m, wknn
+9.88 → 9.89: real phones keep their estimate) and the simulator's stress split (four
+transmitters: knn fixes' ekf 4.17 → 3.85 m); docs/fingerprint-results.md.
 
 **Cleaning** at fit: exact duplicate rows (same place, same scan) are dropped and
 transmitters heard by fewer than ``min_tx_rows`` fingerprints are ignored.
@@ -109,13 +115,15 @@ class WKNNModel(FingerprintModel):
     voting for building and floor; offset_search_db: half-width (dB) of the per-query
     offset search (0 = off); min_tx_rows: transmitters heard by fewer fingerprints are
     ignored; dedupe: drop exact duplicate fingerprints; offset_estimate: per-query RSS
-    offset from the nearest ``offset_neighbours`` fingerprints (at most ±``offset_max_db``);
+    offset from the nearest ``offset_neighbours`` fingerprints (at most ±``offset_max_db``;
+    made when they share at least ``offset_min_tx`` transmitters with the query);
     calibrate: "points", "rows", "mixed" or None — the held-out residuals ``calibration_``
     is fitted on (module docstring); cv_rows: held-out scans used by
     the cross-validation (k and calibration)."""
 
     name = "wknn"
     weights = "distance"  # neighbours weighted 1/d; knn.py's subclass may weigh them equally
+    offset_min_tx = 1  # as models fitted before the parameter existed estimate the offset (instances: 8)
     CANDIDATES = 96  # nearest fingerprints per query the hierarchy is resolved from
     DERIVED = ("tx_ptr_", "tx_rows_", "tx_vals_", "tx_bounds_")  # rebuilt from XT_ at load, not stored
 
@@ -123,7 +131,7 @@ class WKNNModel(FingerprintModel):
                  floor_k: int = 10, offset_search_db: float = 0.0, offset_step_db: float = 3.0,
                  min_tx_rows: int = 2, dedupe: bool = True, k_grid: tuple[int, ...] = (1, 2, 3, 4, 5, 7, 9),
                  offset_estimate: bool = True, offset_neighbours: int = 10, offset_max_db: float = 15.0,
-                 offset_iterations: int = 3,
+                 offset_iterations: int = 3, offset_min_tx: int = 8,
                  calibrate: str | None = "points", cv_rows: int = 1500,
                  missing: str = "exponential", floor_classifier: str | None = None, **common):
         super().__init__(missing=missing, floor_classifier=floor_classifier, **common)
@@ -149,6 +157,7 @@ class WKNNModel(FingerprintModel):
         self.offset_neighbours = int(offset_neighbours)
         self.offset_max_db = float(offset_max_db)
         self.offset_iterations = int(offset_iterations)
+        self.offset_min_tx = int(offset_min_tx)
 
     # ---- state (artifacts store the mostly-zero matrix sparse) ---------------------------
     def __getstate__(self) -> dict:
@@ -425,7 +434,10 @@ class WKNNModel(FingerprintModel):
         readings[:, -1] = q[cols]
         dbm = self.encoder_.decode(readings)  # one decode (element by element) for both
         diff = dbm[:, :-1] - dbm[:, -1:]
-        diff = np.sort(diff[~np.isnan(diff)])
+        both = ~np.isnan(diff)
+        if int(both.any(axis=1).sum()) < self.offset_min_tx:
+            return 0.0
+        diff = np.sort(diff[both])
         n = len(diff)
         if n < 3:
             return 0.0
