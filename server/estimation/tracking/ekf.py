@@ -134,7 +134,7 @@ class EKFXYTracker(_EKFUpdates, Tracker):
 
 
 @register
-class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
+class EKFTracker(_EKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracker):
     """Self-calibrating EKF, state [x, y, b, s] (heading bias in radians, step scale).
 
     Prediction: x⁻ = f(x, d, h), P⁻ = F P Fᵀ + G diag(σd², σh²) Gᵀ + diag(q, q, σb², σs²)
@@ -180,20 +180,8 @@ class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
         self.ekf.P = selfcal.symmetric(np.asarray(self.ekf.P, float))
 
     @property
-    def state_mean(self) -> np.ndarray:
-        return np.asarray(self.ekf.x, float).reshape(4).copy()
-
-    @property
-    def state_covariance(self) -> np.ndarray:
-        return np.asarray(self.ekf.P, float).copy()
-
-    @property
-    def mean(self) -> np.ndarray:
-        return self.state_mean[:2]
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.state_covariance[:2, :2]
+    def _kf(self) -> ExtendedKalmanFilter:
+        return self.ekf
 
     def reset(self, mean, cov) -> None:
         self.ekf.x, self.ekf.P = selfcal.reset_position(self.state_mean, self.state_covariance, as_mean(mean),
@@ -201,11 +189,3 @@ class EKFTracker(_EKFUpdates, selfcal.Calibrating, Tracker):
 
     def inflate(self, factor: float) -> None:
         self.ekf.P = self.state_covariance * float(factor)
-
-    def _state(self) -> dict:
-        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
-                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
-
-    def _load_state(self, state: dict) -> None:
-        self.ekf.x = np.asarray(state["x"], float).reshape(4)
-        self.ekf.P = np.asarray(state["P"], float).reshape(4, 4)

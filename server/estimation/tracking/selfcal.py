@@ -25,6 +25,7 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -154,3 +155,37 @@ class Calibrating:
     @property
     def step_scale(self) -> float:
         return float(self.state_mean[3])
+
+
+class FilterpyState:
+    """Accessors and the stored form of a self-calibrating filter whose [x, y, b, s] and P live in
+    a filterpy filter (``_kf``: the EKF's or the UKF's): both store ``mean``/``cov`` (the position)
+    and ``x``/``P`` (the whole state), and load ``x``/``P``."""
+
+    @property
+    def _kf(self) -> Any:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    @property
+    def state_mean(self) -> np.ndarray:
+        return np.asarray(self._kf.x, float).reshape(N_AUG).copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        return np.asarray(self._kf.P, float).copy()
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.state_mean[:2]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.state_covariance[:2, :2]
+
+    def _state(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
+                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
+
+    def _load_state(self, state: dict) -> None:
+        self._kf.x = np.asarray(state["x"], float).reshape(N_AUG)
+        self._kf.P = np.asarray(state["P"], float).reshape(N_AUG, N_AUG)

@@ -135,7 +135,7 @@ class UKFXYTracker(_UKFUpdates, Tracker):
 
 
 @register
-class UKFTracker(_UKFUpdates, selfcal.Calibrating, Tracker):
+class UKFTracker(_UKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracker):
     """Self-calibrating UKF, state [x, y, b, s].
 
     Prediction: Merwe sigma points of [x, y, b, s, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²))
@@ -193,31 +193,11 @@ class UKFTracker(_UKFUpdates, selfcal.Calibrating, Tracker):
         self.ukf.P = selfcal.symmetric(np.asarray(P, float))
 
     @property
-    def state_mean(self) -> np.ndarray:
-        return self.ukf.x.copy()
-
-    @property
-    def state_covariance(self) -> np.ndarray:
-        return self.ukf.P.copy()
-
-    @property
-    def mean(self) -> np.ndarray:
-        return self.ukf.x[:2].copy()
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.ukf.P[:2, :2].copy()
+    def _kf(self) -> UnscentedKalmanFilter:
+        return self.ukf
 
     def reset(self, mean, cov) -> None:
         self._set(*selfcal.reset_position(self.ukf.x, self.ukf.P, as_mean(mean), as_cov(cov)))
 
     def inflate(self, factor: float) -> None:
         self._set(self.ukf.x, self.ukf.P * float(factor))
-
-    def _state(self) -> dict:
-        return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
-                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
-
-    def _load_state(self, state: dict) -> None:
-        self.ukf.x = np.asarray(state["x"], float).reshape(4)
-        self.ukf.P = np.asarray(state["P"], float).reshape(4, 4)
