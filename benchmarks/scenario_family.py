@@ -434,6 +434,9 @@ def main() -> int:
         print(markdown(rows, title))
         print()
         report[kind] = rows
+        report[f"{kind}_per_scenario_mean"] = {m: [float(np.mean(r[m]["errors"])) if len(r[m]["errors"]) else None
+                                                   for r in results]
+                                               for m in ["pdr-only", "fingerprint-only", *filters]}
         biases = {f: [round(r[f]["bias_deg"], 1) for r in results if r[f].get("bias_deg") is not None]
                   for f in filters}
         report[f"{kind}_final_bias_deg"] = {f: b for f, b in biases.items() if b}
