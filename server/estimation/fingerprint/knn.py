@@ -32,9 +32,10 @@ class KNNModel(WKNNModel):
     def __init__(self, k: int = 3, weights: str = "distance", floor_k: int | None = None, **common):
         if weights not in WEIGHTS:
             raise ValueError(f"weights must be one of {WEIGHTS}")
-        if k is None or int(k) < 1 or (floor_k is not None and int(floor_k) < 1):
-            raise ValueError("k and floor_k must be at least 1")
-        super().__init__(k=int(k), floor_k=max(int(k), 10) if floor_k is None else int(floor_k), **common)
+        if k is None:  # (wknn's None, k chosen by cross-validation, is not knn's)
+            raise ValueError("k must be at least 1")
+        # wknn checks that k and floor_k are at least 1
+        super().__init__(k=k, floor_k=max(int(k), 10) if floor_k is None else floor_k, **common)
         self.weights = weights
 
     def __setstate__(self, state: dict) -> None:
