@@ -284,3 +284,94 @@ def test_pf_with_resample_kills_off_resamples_when_most_die():
     t.predict(Step(0, 0.7, 0.0))  # most of the cloud crosses y = 1
     assert np.all(t.weights == t.weights[0])  # resampled among the survivors
     assert np.all(t.particles[:, 1] < 1.0)
+
+
+# -- the fixes' shared error (fix_bias_share) -------------------------------------------------
+CORRIDOR = [[-5.0, -1.0, 80.0, -1.0], [-5.0, 1.0, 80.0, 1.0], [-5.0, -1.0, -5.0, 1.0], [80.0, -1.0, 80.0, 1.0]]
+
+
+def _corridor_walk(share: float, seed: int, bias: tuple[float, float]) -> float:
+    """Mean error of a pf walking 56 m east along a 2 m corridor (its plan given), steps of the
+    right length, fixes every second step at the truth + ``bias`` + N(0, 1.5²), R = 16·I."""
+    t = make_tracker("pf", [0, 0], np.eye(2) * 0.1, walls=CORRIDOR, seed=seed, fix_bias_share=share)
+    rng = np.random.default_rng(100 + seed)
+    errs, x = [], 0.0
+    for k in range(80):
+        x += 0.7
+        t.predict(Step(k, 0.7, 90.0 + rng.normal(0, 2)))
+        if k % 2 == 1:
+            z = np.array([x, 0.0]) + bias + rng.normal(0, 1.5, 2)
+            t.update(Fix(float(z[0]), float(z[1]), 0, np.eye(2) * 16.0))
+        errs.append(np.hypot(t.mean[0] - x, t.mean[1]))
+    return float(np.mean(errs))
+
+
+def test_pf_with_a_plan_is_not_dragged_by_fixes_biased_together():
+    """Fixes 5 m ahead all along the walk: fused as independent they pull the cloud forward (the
+    step scale learns to run ahead); with a share of their error shared along the walk the cloud
+    keeps to the steps. Unbiased fixes cost the shared error little."""
+    biased = {share: np.mean([_corridor_walk(share, s, (5.0, 0.0)) for s in range(3)]) for share in (0.0, 0.3)}
+    assert biased[0.3] < 0.6 * biased[0.0]
+    honest = {share: np.mean([_corridor_walk(share, s, (0.0, 0.0)) for s in range(3)]) for share in (0.0, 0.3)}
+    assert honest[0.3] < 1.5 * honest[0.0] + 0.1
+
+
+@pytest.mark.parametrize("walls", [CORRIDOR, None])
+def test_pf_fix_likelihood_with_the_shared_error_is_hand_computed(walls):
+    """With a plan a fix weighs as N(z; p + √ρ·L·u, (1 − ρ)·R), L Lᵀ = R; without one as N(z; p, R)."""
+    rho = 0.3
+    t = make_tracker("pf", [10.0, 0.0], np.diag([4.0, 0.2]), walls=walls, seed=4, fix_bias_share=rho,
+                     resample_threshold=0.0)
+    assert t.particles.shape == (1000, 6)
+    before = t.particles.copy()
+    R = np.array([[9.0, 1.0], [1.0, 4.0]])
+    z = np.array([11.0, 0.3])
+    t.update(Fix(float(z[0]), float(z[1]), 0, R))
+    if walls is None:
+        d, S = before[:, :2] - z, R
+    else:
+        d, S = before[:, :2] + np.sqrt(rho) * before[:, 4:6] @ np.linalg.cholesky(R).T - z, (1 - rho) * R
+    lik = np.exp(-0.5 * np.einsum("ij,jk,ik->i", d, np.linalg.inv(S), d))
+    exact = lik / lik.sum()
+    kept = lik / lik.max() > 2.0**-15.9
+    np.testing.assert_allclose(t.weights[kept], exact[kept], rtol=0.045)
+    np.testing.assert_allclose(t.mean, exact @ before[:, :2], atol=0.01)
+
+
+def test_pf_with_the_shared_error_restores_exactly():
+    import json
+
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2), walls=CORRIDOR, seed=5, fix_bias_share=0.3)
+    t.predict(Step(1.0, 0.7, 90.0))
+    t.update(Fix(1.5, 0.2, 0, np.eye(2) * 4.0))
+    data = json.loads(json.dumps(t.to_dict()))
+    assert len(json.dumps(data["state"]["particles"])) < 7800  # 6,000 codes and the grid
+    back = tracker_from_dict(data)
+    np.testing.assert_array_equal(back.particles, t.particles)
+    for tr in (t, back):
+        tr.predict(Step(2.0, 0.7, 90.0))
+        tr.update(Fix(2.0, 0.0, 0, np.eye(2) * 4.0))
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_array_equal(back.weights, t.weights)
+
+
+def test_pf_state_stored_before_the_shared_error_goes_on_without_it():
+    """A pf stored with four columns (and no fix_bias_* parameters) loads as it was written:
+    ρ = 0, the same particles, the same future."""
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2), walls=CORRIDOR, seed=5, fix_bias_share=0.0)
+    t.predict(Step(1.0, 0.7, 90.0))
+    data = t.to_dict()
+    del data["state"]["dim"]
+    for k in ("fix_bias_share", "fix_bias_steps"):
+        del data["params"][k]
+    back = tracker_from_dict(data)
+    assert back.params["fix_bias_share"] == 0.0 and back.particles.shape == (1000, 4)
+    for tr in (t, back):
+        tr.predict(Step(2.0, 0.7, 90.0))
+        tr.update(Fix(1.5, 0.0, 0, np.eye(2) * 4.0))
+    np.testing.assert_array_equal(back.particles, t.particles)
+    assert tracker_from_dict(back.to_dict()).particles.shape == (1000, 4)

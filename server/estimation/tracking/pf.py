@@ -38,9 +38,10 @@ the particles and weights packed a byte per number (``packed``): each column on 
 256 values spanning the cloud (resolution ≈ 0.8 % of its spread; refitted whenever the
 values change), the weights as their ratio to the largest on a log scale (±2.2 %), deflated
 and in base85: ≈ 5.8 kB of text for 1,000 particles [x, y, b, s] and their weights (4.7 kB
-after a resampling, when the weights are uniform), against 16 kB as float16 offsets and
-float32 weights in base64 (the session's whole stored state per batch: 8.2 kB against 17 kB
-on the tune scenarios of benchmarks/scenario_family.py, the same error and NEES). The filter
+after a resampling, when the weights are uniform; 8.8 and 7.7 kB with the shared error's u₁,
+u₂), against 16 kB as float16 offsets and float32 weights in base64 (the session's whole
+stored state per batch: 8.2 kB against 17 kB on the tune scenarios of
+benchmarks/scenario_family.py, the same error and NEES; 9.9 kB with u). The filter
 holds exactly those values (``_quantize`` after every change; a step's new positions are
 rounded before the walls judge them, as are the draws of a redraw), so a restored filter
 continues exactly as the one that was stored.
@@ -83,6 +84,16 @@ from server.estimation.types import Fix, Step
 #: ``n_particles``.
 KLD_BIN_M = 1.0
 KLD_EPSILON = 0.15
+
+#: the share of a fix's variance its walk's fixes share, and that error's correlation length
+#: (steps): ``ParticleFilterTracker``; off by default (a session sets it through its
+#: ``filter_params``). ρ = 0.35 over 20 steps was chosen from {0.1, 0.2, 0.35} × {20, 50, 100} on
+#: the tune and stress scenarios of benchmarks/scenario_family.py with the loop's plan and the MSFT
+#: walks' folds 0–1 (mean −16 % against ρ = 0), then lost on the reporting folds 2–3 (2.49 → 2.65
+#: m over two seed salts): on walks whose compass was 45° off it explained the heading's error as
+#: the fixes' and lost the track (docs/msft-evaluation.md, "The fixes' shared error in the PF").
+FIX_BIAS_SHARE = 0.0
+FIX_BIAS_STEPS = 20.0
 
 
 @register
@@ -346,16 +357,28 @@ class ParticleFilterXYTracker(Tracker):
 
 @register
 class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
-    """Self-calibrating PF: particles [x, y, b, s].
+    """Self-calibrating PF: particles [x, y, b, s], and [u₁, u₂] with a floor plan.
 
     Prediction per particle: b_i += N(0, σb²), s_i += N(0, σs²) (kept in range), then its
     step d_i = s_i·(d + σd·ε), h_i = h + b_i + σh·ε, plus the q jitter; walls and the walkable
     area kill as in the seed form. At the start b_i ~ N(0, σb0²), s_i ~ N(1, σs0²). A ``reset`` (snap, floor
-    change) redraws the positions and keeps each particle's calibration. Updates weigh
-    the positions only (inherited)."""
+    change) redraws the positions and keeps each particle's calibration.
+
+    **The fixes' shared error** (``fix_bias_share`` ρ > 0, columns u): a walk's fingerprint
+    fixes are biased together (the same wrong corridor for a while), and fused as independent
+    they drag the cloud. Each particle carries a unit-variance Gauss–Markov u (u ← φ·u +
+    √(1 − φ²)·ε per step, φ = exp(−1/``fix_bias_steps``)), and a fix z with covariance R is
+    weighed as z ~ N(p + √ρ·L·u, (1 − ρ)·R), L Lᵀ = R: a share ρ of each fix's variance is a
+    bias the walk's fixes share, in units of the fix's own covariance (so one ρ serves a site
+    whose fixes are 2 m off and one whose fixes are 12 m off). Only where the floor has a plan
+    (walls or a walkable area): the walls are what tell a fix bias from a heading bias; without
+    them both explain the same innovations and the tracker lets the fixes' "bias" absorb the
+    walk's drift (docs/msft-evaluation.md, "A fix-bias state in the EKF"), so u is then left
+    alone and fixes weigh as N(p, R). A state stored before this (four columns) loads with
+    ρ = 0 and goes on as it started."""
 
     name = "pf"
-    dim = 4
+    dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0)
 
     def _configure(
         self,
@@ -366,12 +389,27 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        fix_bias_share: float = FIX_BIAS_SHARE,
+        fix_bias_steps: float = FIX_BIAS_STEPS,
         **pf_params,
     ) -> None:
-        """The seed form's configuration (``pf_params``) plus the calibration's random walks."""
+        """The seed form's configuration (``pf_params``) plus the calibration's random walks
+        and the fixes' shared error."""
         self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
+        if not 0.0 <= fix_bias_share < 1.0:
+            raise ValueError("fix_bias_share must be at least 0 and below 1")
+        if not fix_bias_steps >= 1.0:
+            raise ValueError("fix_bias_steps must be at least 1")
         super()._configure(walls, seed, **pf_params)
         self.params.update(self._cal)
+        self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps))
+
+    def _set_fix_bias(self, share: float, steps: float) -> None:
+        self.params.update(fix_bias_share=share, fix_bias_steps=steps)
+        self.dim = 6 if share > 0 else 4
+
+    def _fix_bias_on(self) -> bool:
+        return self.dim == 6 and (len(self.walls) > 0 or self.walkable is not None)
 
     def predict(self, step: Step) -> None:
         n = len(self.particles)
@@ -379,6 +417,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         P = self.particles
         P[:, 2] += math.radians(self._cal["bias_walk_deg"]) * rng.standard_normal(n)
         P[:, 3] = np.clip(P[:, 3] + self._cal["scale_walk"] * rng.standard_normal(n), *selfcal.SCALE_RANGE)
+        if self._fix_bias_on():
+            phi = math.exp(-1.0 / self.params["fix_bias_steps"])
+            P[:, 4:6] = phi * P[:, 4:6] + math.sqrt(1.0 - phi * phi) * rng.standard_normal((n, 2))
         d = P[:, 3] * (step.length_m + step.length_std_m * rng.standard_normal(n))
         h = math.radians(step.heading_deg) + P[:, 2] + math.radians(step.heading_std_deg) * rng.standard_normal(n)
         moved = P.copy(order="F")
@@ -387,15 +428,27 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
         self._settle(moved, step.length_m)
 
+    def update(self, fix: Fix) -> None:
+        if not self._fix_bias_on():
+            return super().update(fix)
+        rho = self.params["fix_bias_share"]
+        R = fix_cov(fix.covariance)
+        bias = math.sqrt(rho) * self.particles[:, 4:6] @ np.linalg.cholesky(R).T
+        diff = self.particles[:, :2] + bias - np.asarray(fix.mean, float)
+        maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv((1.0 - rho) * R), diff)
+        self._reweight(-0.5 * maha)
+
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
         L = np.linalg.cholesky(as_cov(cov))
         xy = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
         old = getattr(self, "particles", None)
-        if old is None or old.shape[1:] != (4,):
+        if old is None or old.shape[1:] != (self.dim,):
             cal = np.column_stack((math.radians(self._cal["bias0_std_deg"]) * self.rng.standard_normal(n),
                                    np.clip(1.0 + self._cal["scale0_std"] * self.rng.standard_normal(n),
                                            *selfcal.SCALE_RANGE)))
+            if self.dim == 6:
+                cal = np.column_stack((cal, self.rng.standard_normal((n, 2))))
         else:  # keep the calibration the particles learned (their weights carry over to it)
             cal = old[systematic_resample(self.weights, float(self.rng.random()), n), 2:]
         self.particles = np.column_stack((xy, cal))
@@ -403,15 +456,26 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         self._quantize()
 
     def inflate(self, factor: float) -> None:
-        super().inflate(factor)
+        """Spread position and calibration about their mean by √factor (u keeps its unit prior)."""
+        m = self.weights @ self.particles[:, :4]
+        self.particles[:, :4] = m + math.sqrt(float(factor)) * (self.particles[:, :4] - m)
         self.particles[:, 3] = np.clip(self.particles[:, 3], *selfcal.SCALE_RANGE)
         self._quantize()
 
+    def _state(self) -> dict:
+        return {**super()._state(), "dim": self.dim}
+
+    def _load_state(self, state: dict) -> None:
+        if state.get("dim", 4) != self.dim:  # stored before the fixes' shared error: go on without it
+            self._set_fix_bias(0.0, self.params["fix_bias_steps"])
+        super()._load_state(state)
+
     @property
     def state_mean(self) -> np.ndarray:
-        return self.weights @ self.particles
+        """[x, y, b, s]."""
+        return self.weights @ self.particles[:, :4]
 
     @property
     def state_covariance(self) -> np.ndarray:
-        diff = self.particles - self.state_mean
+        diff = self.particles[:, :4] - self.state_mean
         return (diff * self.weights[:, None]).T @ diff
