@@ -167,10 +167,13 @@ class ParticleFilterXYTracker(Tracker):
         self._settle(self.particles + move, step.length_m)
 
     def update(self, fix: Fix) -> None:
+        self._reweight(self._fix_loglik(fix))
+
+    def _fix_loglik(self, fix: Fix) -> np.ndarray:
+        """Each particle's log-likelihood of ``fix`` (up to a constant): N(z; x_i, R)."""
         R = fix_cov(fix.covariance)
         diff = self.particles[:, :2] - np.asarray(fix.mean, float)
-        maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
-        self._reweight(-0.5 * maha)
+        return -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
         if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
@@ -428,15 +431,15 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
         self._settle(moved, step.length_m)
 
-    def update(self, fix: Fix) -> None:
+    def _fix_loglik(self, fix: Fix) -> np.ndarray:
+        """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error, else the seed form's."""
         if not self._fix_bias_on():
-            return super().update(fix)
+            return super()._fix_loglik(fix)
         rho = self.params["fix_bias_share"]
         R = fix_cov(fix.covariance)
         bias = math.sqrt(rho) * self.particles[:, 4:6] @ np.linalg.cholesky(R).T
         diff = self.particles[:, :2] + bias - np.asarray(fix.mean, float)
-        maha = np.einsum("ij,jk,ik->i", diff, np.linalg.inv((1.0 - rho) * R), diff)
-        self._reweight(-0.5 * maha)
+        return -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv((1.0 - rho) * R), diff)
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
