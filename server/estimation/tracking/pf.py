@@ -96,6 +96,12 @@ FIX_BIAS_SHARE = 0.0
 FIX_BIAS_STEPS = 20.0
 
 
+def gaussian_loglik(points: np.ndarray, z, R: np.ndarray) -> np.ndarray:
+    """log N(z; pᵢ, R) of each row pᵢ of ``points``, up to a constant (−½ of the Mahalanobis distance²)."""
+    diff = points - np.asarray(z, float)
+    return -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
+
+
 @register
 class ParticleFilterXYTracker(Tracker):
     name = "pf-xy"
@@ -171,9 +177,7 @@ class ParticleFilterXYTracker(Tracker):
 
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
         """Each particle's log-likelihood of ``fix`` (up to a constant): N(z; x_i, R)."""
-        R = fix_cov(fix.covariance)
-        diff = self.particles[:, :2] - np.asarray(fix.mean, float)
-        return -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv(R), diff)
+        return gaussian_loglik(self.particles[:, :2], fix.mean, fix_cov(fix.covariance))
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
         if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
@@ -438,8 +442,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         rho = self.params["fix_bias_share"]
         R = fix_cov(fix.covariance)
         bias = math.sqrt(rho) * self.particles[:, 4:6] @ np.linalg.cholesky(R).T
-        diff = self.particles[:, :2] + bias - np.asarray(fix.mean, float)
-        return -0.5 * np.einsum("ij,jk,ik->i", diff, np.linalg.inv((1.0 - rho) * R), diff)
+        return gaussian_loglik(self.particles[:, :2] + bias, fix.mean, (1.0 - rho) * R)
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
