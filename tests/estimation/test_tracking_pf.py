@@ -375,3 +375,75 @@ def test_pf_state_stored_before_the_shared_error_goes_on_without_it():
         tr.update(Fix(1.5, 0.0, 0, np.eye(2) * 4.0))
     np.testing.assert_array_equal(back.particles, t.particles)
     assert tracker_from_dict(back.to_dict()).particles.shape == (1000, 4)
+
+
+# -- the cloud kept as wide as a Kalman update (kalman_floor) -----------------------------------
+def _far_fix(kappa: float, seed: int, walls=None):
+    """A pf (no resampling) from N(0, 4·I) given a fix at (6, 0) with R = I: the Bayesian posterior
+    is N((4.8, 0), 0.8·I), but only the ~1 % of particles 2.4σ out carry its weight."""
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2) * 4.0, walls=walls, seed=seed, kalman_floor=kappa,
+                     resample_threshold=0.0)
+    before = t.particles.copy()
+    t.update(Fix(6.0, 0.0, 0, np.eye(2)))
+    return t, before
+
+
+def test_pf_kalman_floor_keeps_the_cloud_as_wide_as_a_kalman_update():
+    """The Kalman update of the cloud's own moments leaves P − P (P + R)⁻¹ P ≈ 0.8·I; the
+    reweighted (and resampled) cloud alone is narrower than that on most draws, never with the floor."""
+    narrower = 0
+    for seed in range(6):
+        out = {}
+        for kappa in (0.0, 1.0):
+            t = make_tracker("pf", [0.0, 0.0], np.eye(2) * 4.0, seed=seed, kalman_floor=kappa)
+            P = t.covariance
+            floor = P - P @ np.linalg.inv(P + np.eye(2)) @ P
+            t.update(Fix(6.0, 0.0, 0, np.eye(2)))
+            out[kappa] = np.linalg.eigvalsh(t.covariance)[0] / np.linalg.eigvalsh(floor)[0]
+        narrower += out[0.0] < 0.9
+        assert out[1.0] > 0.95
+        np.testing.assert_allclose(t.mean, [4.7, 0.0], atol=0.35)
+    assert narrower >= 4
+
+
+def test_pf_kalman_floor_adds_no_calibration_spread_for_a_fix_that_agrees():
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2) * 4.0, seed=3, kalman_floor=1.0, resample_threshold=0.0)
+    before = t.particles.copy()
+    t.update(Fix(float(t.mean[0]), float(t.mean[1]), 0, np.eye(2) * 0.5))  # d² = 0: γ = 0
+    np.testing.assert_array_equal(t.particles[:, 2:], before[:, 2:])
+    assert not np.array_equal(t.particles[:, :2], before[:, :2])  # the positions' shortfall was made up
+    far, before = _far_fix(1.0, 3)  # d² = 7.2: γ = 0.78
+    assert np.std(far.particles[:, 2] - before[:, 2]) > 0
+
+
+def test_pf_kalman_floor_keeps_a_strong_beacon_range_from_leaving_one_particle():
+    """A beacon 10 m from the cloud's centre heard at 1 ± 0.3 m: reweighted alone, the handful of
+    particles nearest it carry everything; kept as wide as the (linearised, log-range) Kalman update,
+    the cloud keeps most of its spread across the range's direction."""
+    spreads = {}
+    for kappa in (0.0, 1.0):
+        t = make_tracker("pf", [10.0, 0.0], np.eye(2) * 4.0, seed=2, kalman_floor=kappa)
+        assert t.update_range([0.0, 0.0], 1.0, 0.3)
+        spreads[kappa] = np.trace(t.covariance)
+    assert spreads[1.0] > 4 * spreads[0.0]
+
+
+def test_pf_kalman_floor_is_off_where_the_floor_has_a_plan():
+    plain, _ = _far_fix(0.0, 1, walls=CORRIDOR)
+    kept, _ = _far_fix(1.0, 1, walls=CORRIDOR)
+    np.testing.assert_array_equal(kept.particles, plain.particles)
+
+
+def test_pf_with_the_kalman_floor_restores_exactly():
+    import json
+
+    from server.estimation.tracking import tracker_from_dict
+
+    t, _ = _far_fix(0.5, 7)
+    back = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    for tr in (t, back):
+        tr.predict(Step(2.0, 0.7, 90.0))
+        tr.update(Fix(8.0, 1.0, 0, np.eye(2) * 2.0))
+        tr.update_range([9.0, 3.0], 2.0, 0.6)
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_array_equal(back.weights, t.weights)

@@ -57,7 +57,14 @@ from server.estimation import floorplan  # (a module: floorplan imports tracking
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
-from server.estimation.tracking.measurements import MIN_LOG_RANGE_M, log_range, parse_on_wall, range_usable
+from server.estimation.tracking.measurements import (
+    MIN_LOG_RANGE_M,
+    log_range,
+    log_range_H,
+    log_range_h,
+    parse_on_wall,
+    range_usable,
+)
 from server.estimation.tracking.packed import (
     fit_grid,
     grid_of,
@@ -94,6 +101,13 @@ KLD_EPSILON = 0.15
 #: the fixes' and lost the track (docs/msft-evaluation.md, "The fixes' shared error in the PF").
 FIX_BIAS_SHARE = 0.0
 FIX_BIAS_STEPS = 20.0
+
+#: the share of a Kalman update's spread the PF's cloud keeps after a fix, without a plan
+#: (``ParticleFilterTracker``, ``kalman_floor``); off by default until measured on held-out data.
+KALMAN_FLOOR = 0.0
+#: χ²'s 99 % point by degrees of freedom: a measurement this far from the estimate (under its
+#: innovation covariance) restores the whole calibration spread (``kalman_floor``)
+CHI2_99 = {1: 6.63, 2: 9.21}
 
 
 def gaussian_loglik(points: np.ndarray, z, R: np.ndarray) -> np.ndarray:
@@ -398,6 +412,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         scale_walk: float = selfcal.SCALE_WALK,
         fix_bias_share: float = FIX_BIAS_SHARE,
         fix_bias_steps: float = FIX_BIAS_STEPS,
+        kalman_floor: float = KALMAN_FLOOR,
         **pf_params,
     ) -> None:
         """The seed form's configuration (``pf_params``) plus the calibration's random walks
@@ -407,16 +422,21 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             raise ValueError("fix_bias_share must be at least 0 and below 1")
         if not fix_bias_steps >= 1.0:
             raise ValueError("fix_bias_steps must be at least 1")
+        if not 0.0 <= kalman_floor <= 1.0:
+            raise ValueError("kalman_floor must be between 0 and 1")
         super()._configure(walls, seed, **pf_params)
-        self.params.update(self._cal)
+        self.params.update(self._cal, kalman_floor=float(kalman_floor))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps))
 
     def _set_fix_bias(self, share: float, steps: float) -> None:
         self.params.update(fix_bias_share=share, fix_bias_steps=steps)
         self.dim = 6 if share > 0 else 4
 
+    def _has_plan(self) -> bool:
+        return len(self.walls) > 0 or self.walkable is not None
+
     def _fix_bias_on(self) -> bool:
-        return self.dim == 6 and (len(self.walls) > 0 or self.walkable is not None)
+        return self.dim == 6 and self._has_plan()
 
     def predict(self, step: Step) -> None:
         n = len(self.particles)
@@ -434,6 +454,59 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         moved[:, 1] += d * np.cos(h)
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
         self._settle(moved, step.length_m)
+
+    def update(self, fix: Fix) -> None:
+        floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)
+        if self._reweight(self._fix_loglik(fix)) and floor is not None:
+            self._keep_spread(*floor)
+
+    def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
+        floor = None
+        if range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            m, beacon = self.state_mean, np.asarray(beacon_xy, float).reshape(2)
+            z, sigma = log_range(range_m, range_std_m)
+            floor = self._kalman_floor(log_range_H(m, beacon), np.array([[sigma**2]]), z - log_range_h(m, beacon))
+        used = super().update_range(beacon_xy, range_m, range_std_m, on_wall)
+        if used and floor is not None:
+            self._keep_spread(*floor)
+        return used
+
+    def _kalman_floor(self, H: np.ndarray, R: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """Before a measurement (Jacobian ``H`` on [x, y, b, s], noise ``R``, innovation ``y``):
+        the covariance a Kalman update of the cloud's own moments would leave, and γ = min(1,
+        d²/χ²'s 99 % point), d² = yᵀ S⁻¹ y; None when ``kalman_floor`` is off or the floor has a plan."""
+        if self.params["kalman_floor"] <= 0 or self._has_plan():
+            return None
+        P = self.state_covariance
+        PH = P @ H.T
+        S_inv = np.linalg.inv(H @ PH + R)
+        d2 = float(y @ S_inv @ y)
+        return P - PH @ S_inv @ PH.T, min(1.0, d2 / CHI2_99[len(y)])
+
+    def _keep_spread(self, floor: np.ndarray, gamma: float) -> None:
+        """Add N(0, D) to [x, y, b, s]: D = κ·(the positive part of ``floor`` − the cloud's
+        covariance), its b and s rows and columns scaled by √γ.
+
+        Why: a measurement reweights the particles but moves none, so after a few the cloud is
+        narrower than the information in them allows (the weight piles onto the few particles
+        nearest the measurement; a strong beacon range can leave one), most of all in the
+        calibration columns; a later drift of the heading then finds no particle to follow it,
+        and the estimate is confident and wrong (NEES ≫ 4 on the stress scenarios of
+        benchmarks/scenario_family.py). A Kalman update of the cloud's own mean and covariance
+        is the spread the measurement allows. The calibration's share follows the
+        measurement's disagreement γ: one that agrees is no sign that the heading or the scale
+        is off, so it adds their spread only as far as it disagrees. Without a plan only:
+        where walls kill particles the cloud's shape is the plan's, not a Gaussian's."""
+        shortfall = floor - self.state_covariance
+        w, V = np.linalg.eigh(0.5 * (shortfall + shortfall.T))
+        if w[-1] <= 0:
+            return
+        root = V * np.sqrt(self.params["kalman_floor"] * np.maximum(w, 0.0))
+        root[2:] *= math.sqrt(gamma)
+        P = self.particles
+        P[:, :4] += self.rng.standard_normal((len(P), 4)) @ root.T
+        P[:, 3] = np.clip(P[:, 3], *selfcal.SCALE_RANGE)
+        self._quantize()
 
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
         """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error, else the seed form's."""
