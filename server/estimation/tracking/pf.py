@@ -29,6 +29,10 @@ fix.covariance, and resamples when N_eff < resample_threshold·N. A beacon range
 in log-range (``measurements.log_range``: the path-loss model's error is log-normal), so a
 strong reading of a far beacon does not leave a single particle alive.
 
+Without a plan the self-calibrating ``pf`` then keeps its cloud at least half as wide as a
+Kalman update of the cloud's own moments would leave it (``kalman_floor``, ``_keep_spread``):
+reweighting alone narrows it faster than the measurements' information does.
+
 With ``min_particles`` below ``n_particles`` the particle count adapts (KLD-sampling,
 ``resampling.kld_count``): each resampling draws as many particles as the cloud's spread
 needs, between the two; equal values (the default: ``min_particles`` is ``n_particles`` unless
@@ -401,7 +405,11 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     them both explain the same innovations and the tracker lets the fixes' "bias" absorb the
     walk's drift (docs/msft-evaluation.md, "A fix-bias state in the EKF"), so u is then left
     alone and fixes weigh as N(p, R). A state stored before this (four columns) loads with
-    ρ = 0 and goes on as it started."""
+    ρ = 0 and goes on as it started.
+
+    **The cloud's spread without a plan** (``kalman_floor`` κ, default 0.5): after an accepted
+    fix or a beacon range, the particles get N(0, D), D the κ-share of what a Kalman update of
+    the cloud's mean and covariance would keep beyond the reweighted cloud (``_keep_spread``)."""
 
     name = "pf"
     dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0)
@@ -511,7 +519,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         P = self.particles
         P[:, :4] += self.rng.standard_normal((len(P), 4)) @ root.T
         P[:, 3] = np.clip(P[:, 3], *selfcal.SCALE_RANGE)
-        self._quantize()
+        self.particles = self._round(P, refit=False)  # (the weights are as stored: ``_reweight``)
 
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
         """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error, else the seed form's."""
