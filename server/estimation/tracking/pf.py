@@ -29,8 +29,8 @@ fix.covariance, and resamples when N_eff < resample_threshold·N. A beacon range
 in log-range (``measurements.log_range``: the path-loss model's error is log-normal), so a
 strong reading of a far beacon does not leave a single particle alive.
 
-Without a plan the self-calibrating ``pf`` then keeps its cloud at least half as wide as a
-Kalman update of the cloud's own moments would leave it (``kalman_floor``, ``_keep_spread``):
+Without a plan the self-calibrating ``pf`` then makes up half of what its cloud's covariance falls
+short of a Kalman update of the cloud's own moments (``kalman_floor``, ``_keep_spread``):
 reweighting alone narrows it faster than the measurements' information does.
 
 With ``min_particles`` below ``n_particles`` the particle count adapts (KLD-sampling,

@@ -50,7 +50,8 @@ TUNABLE: dict[str, Tunable] = {
     "bias_walk_deg": Tunable(0.0, 45.0, "° heading-bias random walk per step"),
     "fix_bias_share": Tunable(0.0, 0.95, "share of a fix's variance shared along the walk (pf, with a plan)"),
     "fix_bias_steps": Tunable(1.0, 10_000.0, "steps, correlation length of the fixes' shared error (pf)"),
-    "kalman_floor": Tunable(0.0, 1.0, "share of a Kalman update's spread the cloud keeps after a fix (pf, no plan)"),
+    "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
+                            "after a fix or beacon range (pf, no plan)"),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
     "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
     "box_half_width_m": Tunable(0.1, 1000.0, "m (fkf)"),
