@@ -159,10 +159,12 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        **grid: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q), "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
-                       **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)}
+                       **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
+                       **selfcal.grid_params(**grid)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self.ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
         self.ekf.x, self.ekf.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
@@ -174,6 +176,7 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
         vd, vh = selfcal.step_input_var(step)
         self.ekf.x = selfcal.move(x, step.length_m, h)
         self.ekf.P = selfcal.symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
+        self._observe_grid(step)
 
     def _tidy(self) -> None:
         self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(4))

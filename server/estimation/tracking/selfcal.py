@@ -25,6 +25,7 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -44,6 +45,17 @@ SCALE_RANGE = (0.5, 2.0)
 
 N_AUG = 4
 
+#: the building's grid as a heading reference (``Calibrating._observe_grid``): σ of the observation
+#: (degrees; 0 = off), the gate on a run's offset from the nearest grid direction, and the steps a
+#: straight run needs before it is observed (once)
+GRID_SIGMA_DEG = 0.0
+GRID_GATE_DEG = 20.0
+GRID_STEPS = 8
+#: a straight run: consecutive steps whose reported heading stays within this of the run's mean (degrees)
+STRAIGHT_DEG = 10.0
+#: walls have a grid when the resultant of their length-weighted 4θ is at least this
+GRID_MIN_RESULTANT = 0.4
+
 
 def calibration_params(
     bias0_std_deg: float = BIAS0_STD_DEG,
@@ -57,6 +69,52 @@ def calibration_params(
             raise ValueError(f"{k} must be a finite number ≥ 0")
     return {"bias0_std_deg": float(bias0_std_deg), "bias_walk_deg": float(bias_walk_deg),
             "scale0_std": float(scale0_std), "scale_walk": float(scale_walk)}
+
+
+def grid_params(grid_sigma_deg: float = GRID_SIGMA_DEG, grid_gate_deg: float = GRID_GATE_DEG,
+                grid_steps: float = GRID_STEPS, grid_again: float = 0) -> dict[str, float]:
+    for k, v in (("grid_sigma_deg", grid_sigma_deg), ("grid_gate_deg", grid_gate_deg), ("grid_steps", grid_steps),
+                 ("grid_again", grid_again)):
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{k} must be a finite number ≥ 0")
+    return {"grid_sigma_deg": float(grid_sigma_deg), "grid_gate_deg": float(grid_gate_deg),
+            "grid_steps": float(max(1, round(grid_steps))), "grid_again": float(grid_again > 0)}
+
+
+def grid_direction_deg(walls: np.ndarray) -> float | None:
+    """The walls' grid direction in [−45°, 45°) (headings as a step's: clockwise from +y), or None
+    when they have none: the length-weighted circular mean of 4θ over the walls, /4, whose
+    resultant is at least ``GRID_MIN_RESULTANT`` (a rectilinear floor's walls agree mod 90°)."""
+    if len(walls) == 0:
+        return None
+    dx, dy = walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1]
+    length = np.hypot(dx, dy)
+    total = float(length.sum())
+    theta4 = 4.0 * np.arctan2(dx, dy)
+    c, s = float(length @ np.cos(theta4)), float(length @ np.sin(theta4))
+    if total <= 0 or math.hypot(c, s) < GRID_MIN_RESULTANT * total:
+        return None
+    return math.degrees(math.atan2(s, c)) / 4.0
+
+
+def wrap_deg(a: float, period: float = 360.0) -> float:
+    """``a`` wrapped to [−period/2, period/2)."""
+    return (a + period / 2) % period - period / 2
+
+
+@dataclass(frozen=True)
+class StraightRun:
+    """The current run of straight steps: their mean reported heading (degrees) and count."""
+
+    mean_deg: float = 0.0
+    n: int = 0
+
+    def extended(self, heading_deg: float) -> StraightRun:
+        """This run with one more step, or a new run from it when it turns more than ``STRAIGHT_DEG``."""
+        off = wrap_deg(heading_deg - self.mean_deg)
+        if self.n == 0 or abs(off) > STRAIGHT_DEG:
+            return StraightRun(wrap_deg(heading_deg), 1)
+        return StraightRun(wrap_deg(self.mean_deg + off / (self.n + 1)), self.n + 1)
 
 
 def initial_state(mean2: np.ndarray, cov2: np.ndarray, params: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -136,9 +194,48 @@ def symmetric(P: np.ndarray) -> np.ndarray:
 
 
 class Calibrating:
-    """Mixin of the augmented trackers: what they have learned, for reports and tests."""
+    """Mixin of the augmented trackers: what they have learned, for reports and tests; and,
+    for the Gaussian ones, the building's grid as a heading reference (``_observe_grid``)."""
 
     augmented = True
+    params: dict[str, Any]
+    walls: np.ndarray
+    _run = StraightRun()
+
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _observe_grid(self, step: Step) -> None:
+        """Heuristic drift elimination once per straight run (``grid_sigma_deg`` > 0, on a floor
+        whose walls have a grid): in a rectilinear building people walk along its grid, so when a
+        run of straight steps reaches ``grid_steps``, its corrected heading (the run's mean + b)
+        within ``grid_gate_deg`` of a grid direction observes b with σ = ``grid_sigma_deg`` —
+        a scalar Kalman update, position and scale following through their correlation. Once
+        per run, not per step: a corridor is one observation, so a wrong snap is not repeated
+        until it is certain."""
+        p = self.params
+        if p.get("grid_sigma_deg", 0.0) <= 0:
+            return
+        self._run = self._run.extended(step.heading_deg)
+        every = int(p["grid_steps"])
+        if self._run.n % every or (not p.get("grid_again", 0) and self._run.n != every):
+            return
+        grid = grid_direction_deg(self.walls)
+        if grid is None:
+            return
+        x, P = self.state_mean, self.state_covariance
+        r = wrap_deg(grid - self._run.mean_deg - math.degrees(x[2]), 90.0)
+        if abs(r) > p["grid_gate_deg"]:
+            return
+        K = P[:, 2] / (P[2, 2] + math.radians(p["grid_sigma_deg"]) ** 2)
+        self._set_state(clamp(x + K * math.radians(r)), symmetric(P - np.outer(K, P[2, :])))
+
+    def _run_state(self) -> dict:
+        return {"run": [self._run.mean_deg, self._run.n]} if self._run.n else {}
+
+    def _load_run(self, state: dict) -> None:
+        run = state.get("run")
+        self._run = StraightRun(float(run[0]), int(run[1])) if run else StraightRun()
 
     @property
     def state_mean(self) -> np.ndarray:  # pragma: no cover - overridden
@@ -157,7 +254,7 @@ class Calibrating:
         return float(self.state_mean[3])
 
 
-class FilterpyState:
+class FilterpyState(Calibrating):
     """Accessors and the stored form of a self-calibrating filter whose [x, y, b, s] and P live in
     a filterpy filter (``_kf``: the EKF's or the UKF's): both store ``mean``/``cov`` (the position)
     and ``x``/``P`` (the whole state), and load ``x``/``P``."""
@@ -182,10 +279,14 @@ class FilterpyState:
     def covariance(self) -> np.ndarray:
         return self.state_covariance[:2, :2]
 
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
+        self._kf.x = np.asarray(x, float).reshape(N_AUG)
+        self._kf.P = np.asarray(P, float).reshape(N_AUG, N_AUG)
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
-                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist()}
+                "x": self.state_mean.tolist(), "P": self.state_covariance.tolist(), **self._run_state()}
 
     def _load_state(self, state: dict) -> None:
-        self._kf.x = np.asarray(state["x"], float).reshape(N_AUG)
-        self._kf.P = np.asarray(state["P"], float).reshape(N_AUG, N_AUG)
+        self._set_state(np.asarray(state["x"], float), np.asarray(state["P"], float))
+        self._load_run(state)

@@ -227,10 +227,11 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        **grid: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q), **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std,
-                                                                   scale_walk)}
+                                                                   scale_walk), **selfcal.grid_params(**grid)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._q_diag = [float(v) for v in np.diag(self._Q)]
         self.x, self.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
@@ -301,6 +302,7 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         c22, c23, c33 = w * c22 + q[2], w * c23, w * c33 + q[3]
         self._x = (m0, m1, m2, m3)
         self._P = ((c00, c01, c02, c03), (c01, c11, c12, c13), (c02, c12, c22, c23), (c03, c13, c23, c33))
+        self._observe_grid(step)
 
     def update(self, fix: Fix) -> None:
         r00, r01, r11 = fix_cov_entries(fix.covariance)
@@ -351,10 +353,13 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
     def inflate(self, factor: float) -> None:
         self.P = self.P * float(factor)
 
+    def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
+        self.x, self.P = x, P
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
-                "x": self.x.tolist(), "P": self.P.tolist()}
+                "x": self.x.tolist(), "P": self.P.tolist(), **self._run_state()}
 
     def _load_state(self, state: dict) -> None:
-        self.x = np.asarray(state["x"], float).reshape(4)
-        self.P = np.asarray(state["P"], float).reshape(4, 4)
+        self._set_state(np.asarray(state["x"], float), np.asarray(state["P"], float))
+        self._load_run(state)

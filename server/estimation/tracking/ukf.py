@@ -162,12 +162,14 @@ class UKFTracker(_UKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        **grid: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {
             "q": float(q), "alpha": float(alpha), "beta": float(beta), "kappa": float(kappa),
             "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
             **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
+            **selfcal.grid_params(**grid),
         }
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._aug_points = MerweScaledSigmaPoints(6, alpha=alpha, beta=beta, kappa=kappa)
@@ -187,6 +189,7 @@ class UKFTracker(_UKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
         moved = selfcal.move_many(sig[:, :4], sig[:, 4], sig[:, 5])
         x, P = unscented_transform(moved, self._aug_points.Wm, self._aug_points.Wc, self._Q)
         self._set(x, P)
+        self._observe_grid(step)
 
     def _set(self, x, P) -> None:
         self.ukf.x = selfcal.clamp(np.asarray(x, float).reshape(4))

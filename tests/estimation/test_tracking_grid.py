@@ -1,0 +1,101 @@
+"""The building's grid as a heading reference (``selfcal.Calibrating._observe_grid``): the walls'
+grid direction, straight runs, one bias observation per run, its gate, and exact persistence."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from server.estimation.tracking import make_tracker, selfcal, tracker_from_dict
+from server.estimation.types import Step
+
+GAUSSIAN = ["ekf", "ukf", "skpf"]
+#: a corridor along x and a cross corridor along y: a grid at 0°
+WALLS = [[-60.0, 0.0, 60.0, 0.0], [-60.0, 3.0, 60.0, 3.0], [0.0, -60.0, 0.0, 60.0], [3.0, -60.0, 3.0, 60.0]]
+ON = {"grid_sigma_deg": 3.0, "grid_gate_deg": 20.0, "grid_steps": 8}
+
+
+def rotated(walls, deg: float) -> list[list[float]]:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return [[c * x1 + s * y1, -s * x1 + c * y1, c * x2 + s * y2, -s * x2 + c * y2] for x1, y1, x2, y2 in walls]
+
+
+def walk(t, headings, start: int = 0) -> list[float]:
+    """Predict with 0.7 m steps along ``headings``; the heading-bias variance after each."""
+    out = []
+    for k, h in enumerate(headings):
+        t.predict(Step(float(start + k), 0.7, float(h), 0.05, 2.0))
+        out.append(float(t.state_covariance[2, 2]))
+    return out
+
+
+@pytest.mark.parametrize("deg", [0.0, 10.8, 30.0, -40.0])
+def test_the_grid_direction_of_rotated_rectilinear_walls(deg):
+    got = selfcal.grid_direction_deg(np.array(rotated(WALLS, deg)))
+    assert got is not None
+    assert selfcal.wrap_deg(got - deg, 90.0) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_walls_at_every_angle_have_no_grid():
+    walls = np.array([[0.0, 0.0, math.sin(a), math.cos(a)] for a in np.linspace(0, math.pi, 13)[:-1]])
+    assert selfcal.grid_direction_deg(walls) is None
+    assert selfcal.grid_direction_deg(np.zeros((0, 4))) is None
+
+
+def test_a_straight_run_grows_until_the_walker_turns():
+    run = selfcal.StraightRun()
+    for h in (178.0, -176.0, 179.0, -178.0):  # straight across ±180°
+        run = run.extended(h)
+    assert run.n == 4
+    assert abs(selfcal.wrap_deg(run.mean_deg - 180.0)) < 2.0
+    run = run.extended(-150.0)  # a turn of 30°: a new run from this step
+    assert (run.n, run.mean_deg) == (1, -150.0)
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_straight_run_observes_the_bias_once(name):
+    # The phone's heading is 12° clockwise of the corridor (a true bias of −12°). Without
+    # fixes, the run's 8th step observes b ≈ −12° once; the later steps of the same run
+    # only let its variance grow by the random walk.
+    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
+    var = walk(t, [102.0] * 30)
+    assert t.heading_bias_deg == pytest.approx(-12.0, abs=1.5)
+    assert var[7] < 0.2 * var[6]  # the observation
+    assert all(b > a for a, b in zip(var[7:], var[8:], strict=False))  # nothing more in this run
+    off = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0)
+    walk(off, [102.0] * 30)
+    assert abs(off.heading_bias_deg) < 1e-9
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_run_far_from_the_grid_or_a_floor_without_walls_observes_nothing(name):
+    for walls, heading in ((WALLS, 135.0), (None, 102.0)):  # 45° off the grid; no plan
+        t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=0, **ON)
+        ref = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=0)
+        walk(t, [heading] * 20)
+        walk(ref, [heading] * 20)
+        np.testing.assert_array_equal(t.state_mean, ref.state_mean)
+        np.testing.assert_array_equal(t.state_covariance, ref.state_covariance)
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_restored_tracker_continues_its_run_exactly(name):
+    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
+    walk(t, [100.0] * 5)  # mid-run: the observation is 3 steps away
+    restored = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    walk(t, [100.0] * 6, start=5)
+    walk(restored, [100.0] * 6, start=5)
+    np.testing.assert_array_equal(restored.state_mean, t.state_mean)
+    np.testing.assert_array_equal(restored.state_covariance, t.state_covariance)
+    assert restored.heading_bias_deg == pytest.approx(-10.0, abs=1.5)
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_grid_again_observes_a_long_run_every_grid_steps(name):
+    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON, grid_again=1)
+    var = walk(t, [102.0] * 30)
+    drops = [k for k in range(1, 30) if var[k] < var[k - 1]]
+    assert drops == [7, 15, 23]  # the 8th, 16th and 24th step of the run
