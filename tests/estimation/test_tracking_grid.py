@@ -1,5 +1,5 @@
 """The building's grid as a heading reference (``selfcal.Calibrating._observe_grid``): the walls'
-grid direction, straight runs, one bias observation per run, its gate, and exact persistence."""
+grid direction, straight runs, a bias observation every `grid_steps` of a run, its gate, exact persistence."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ GAUSSIAN = ["ekf", "ukf", "skpf"]
 #: a corridor along x and a cross corridor along y: a grid at 0°
 WALLS = [[-60.0, 0.0, 60.0, 0.0], [-60.0, 3.0, 60.0, 3.0], [0.0, -60.0, 0.0, 60.0], [3.0, -60.0, 3.0, 60.0]]
 ON = {"grid_sigma_deg": 3.0, "grid_gate_deg": 20.0, "grid_steps": 8}
+OFF = {"grid_sigma_deg": 0.0}
 
 
 def rotated(walls, deg: float) -> list[list[float]]:
@@ -56,25 +57,38 @@ def test_a_straight_run_grows_until_the_walker_turns():
 
 
 @pytest.mark.parametrize("name", GAUSSIAN)
-def test_a_straight_run_observes_the_bias_once(name):
+def test_a_straight_run_observes_the_bias_every_grid_steps(name):
     # The phone's heading is 12° clockwise of the corridor (a true bias of −12°). Without
-    # fixes, the run's 8th step observes b ≈ −12° once; the later steps of the same run
-    # only let its variance grow by the random walk.
+    # fixes, the run's 8th step observes b ≈ −12°, and so do its 16th and 24th; between them
+    # the variance grows by the random walk.
     t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
     var = walk(t, [102.0] * 30)
     assert t.heading_bias_deg == pytest.approx(-12.0, abs=1.5)
-    assert var[7] < 0.2 * var[6]  # the observation
-    assert all(b > a for a, b in zip(var[7:], var[8:], strict=False))  # nothing more in this run
-    off = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0)
+    assert [k for k in range(1, 30) if var[k] < var[k - 1]] == [7, 15, 23]
+    assert var[7] < 0.2 * var[6]
+    off = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **OFF)
     walk(off, [102.0] * 30)
     assert abs(off.heading_bias_deg) < 1e-9
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_turn_starts_a_new_run(name):
+    # 5 steps one way, then 8 after a turn: the observation comes at the 8th step after the turn.
+    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
+    var = walk(t, [102.0] * 5 + [12.0] * 10)
+    assert [k for k in range(1, 15) if var[k] < var[k - 1]] == [12]
+
+
+def test_the_gaussian_trackers_use_the_grid_by_default():
+    for name in GAUSSIAN:
+        assert make_tracker(name, [0.0, 0.0], np.eye(2)).params["grid_sigma_deg"] == selfcal.GRID_SIGMA_DEG > 0
 
 
 @pytest.mark.parametrize("name", GAUSSIAN)
 def test_a_run_far_from_the_grid_or_a_floor_without_walls_observes_nothing(name):
     for walls, heading in ((WALLS, 135.0), (None, 102.0)):  # 45° off the grid; no plan
         t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=0, **ON)
-        ref = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=0)
+        ref = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=0, **OFF)
         walk(t, [heading] * 20)
         walk(ref, [heading] * 20)
         np.testing.assert_array_equal(t.state_mean, ref.state_mean)
@@ -92,10 +106,3 @@ def test_a_restored_tracker_continues_its_run_exactly(name):
     np.testing.assert_array_equal(restored.state_covariance, t.state_covariance)
     assert restored.heading_bias_deg == pytest.approx(-10.0, abs=1.5)
 
-
-@pytest.mark.parametrize("name", GAUSSIAN)
-def test_grid_again_observes_a_long_run_every_grid_steps(name):
-    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON, grid_again=1)
-    var = walk(t, [102.0] * 30)
-    drops = [k for k in range(1, 30) if var[k] < var[k - 1]]
-    assert drops == [7, 15, 23]  # the 8th, 16th and 24th step of the run

@@ -52,11 +52,10 @@ TUNABLE: dict[str, Tunable] = {
     "fix_bias_steps": Tunable(1.0, 10_000.0, "steps, correlation length of the fixes' shared error (pf)"),
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
                             "after a fix or beacon range (pf, no plan)"),
-    "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, once per straight run "
+    "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, per straight run "
                               "(0: off; ekf, ukf, skpf, with walls)"),
     "grid_gate_deg": Tunable(0.0, 45.0, "° largest offset of a straight run from the grid that is observed"),
-    "grid_steps": Tunable(1, 1000, "steps a straight run needs before it observes the grid", integer=True),
-    "grid_again": Tunable(0, 1, "1: a straight run observes the grid again every grid_steps", integer=True),
+    "grid_steps": Tunable(1, 1000, "a straight run observes the grid every this many steps", integer=True),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
     "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
     "box_half_width_m": Tunable(0.1, 1000.0, "m (fkf)"),
