@@ -4,7 +4,9 @@ Run from the repository root:  python benchmarks/tracker_cost.py [--repeat N]
 Also prints the cost ratio PF-1000 / SKPF measured in the same process (the PF's default is
 a fixed 1,000 particles), and the to_dict/from_dict cost and stored size (what a server pays
 per batch to load and store a session). Every tracker runs on a floor with walls; ``pf, no plan``
-is the PF without them, where each update also keeps the cloud's spread (``kalman_floor``).
+is the PF without them, where each update also keeps the cloud's spread (``kalman_floor``). The steps'
+headings are drawn at random, so no straight run forms; ``skpf, straight`` walks one way (heading
+σ 2°), so its grid heading reference observes every 8 steps.
 """
 
 from __future__ import annotations
@@ -36,9 +38,10 @@ def best_us(fn, n: int) -> float:
     return best * 1e6
 
 
-def bench(name: str, repeat: int, walls=WALLS) -> dict[str, float]:
+def bench(name: str, repeat: int, walls=WALLS, straight: bool = False) -> dict[str, float]:
     rng = np.random.default_rng(0)
-    steps = [Step(i, 0.7, float(h), 0.1, 5.0) for i, h in enumerate(rng.uniform(0, 360, repeat))]
+    headings = rng.normal(0.0, 2.0, repeat) if straight else rng.uniform(0, 360, repeat)
+    steps = [Step(i, 0.7, float(h), 0.1, 5.0) for i, h in enumerate(headings)]
     fixes = [Fix(float(x), float(y), 0, np.eye(2) * 2.0) for x, y in rng.normal(0, 1, (repeat, 2))]
     t = make_tracker(name, [0.0, 0.0], np.eye(2), walls=walls, seed=0)
 
@@ -65,11 +68,12 @@ def main() -> None:
     args = parser.parse_args()
     results = {name: bench(name, args.repeat) for name in tracker_names()}
     results["pf, no plan"] = bench("pf", args.repeat, walls=None)
+    results["skpf, straight"] = bench("skpf", args.repeat, straight=True)
     print(f"{'tracker':12s} {'predict µs':>12s} {'update µs':>12s} {'store+load µs':>14s} {'state bytes':>12s}")
     for name, r in results.items():
         print(f"{name:12s} {r['predict_us']:12.1f} {r['update_us']:12.1f} {r['store_load_us']:14.1f} "
               f"{r['state_bytes']:12d}")
-    for pf_name, sk_name in (("pf", "skpf"), ("pf, no plan", "skpf"), ("pf-xy", "skpf-xy")):
+    for pf_name, sk_name in (("pf", "skpf"), ("pf", "skpf, straight"), ("pf, no plan", "skpf"), ("pf-xy", "skpf-xy")):
         pf, sk = results[pf_name], results[sk_name]
         print(
             f"{pf_name} (1,000 particles) / {sk_name} cost ratio: predict {pf['predict_us'] / sk['predict_us']:.1f}x, "

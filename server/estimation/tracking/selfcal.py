@@ -25,8 +25,7 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -104,9 +103,9 @@ def wrap_deg(a: float, period: float = 360.0) -> float:
     return (a + period / 2) % period - period / 2
 
 
-@dataclass(frozen=True)
-class StraightRun:
-    """The current run of straight steps: their mean reported heading (degrees) and count."""
+class StraightRun(NamedTuple):
+    """The current run of straight steps: their mean reported heading (degrees) and count
+    (a tuple: made at every step)."""
 
     mean_deg: float = 0.0
     n: int = 0
@@ -203,6 +202,9 @@ class Calibrating:
     params: dict[str, Any]
     walls: np.ndarray
     _run = StraightRun()
+    #: the grid direction of the walls it was computed for (``grid_direction_deg`` reads every wall)
+    _grid_walls: np.ndarray | None = None
+    _grid_deg: float | None = None
 
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:  # pragma: no cover - overridden
         raise NotImplementedError
@@ -222,7 +224,9 @@ class Calibrating:
         self._run = self._run.extended(step.heading_deg)
         if self._run.n % int(p["grid_steps"]):
             return
-        grid = grid_direction_deg(self.walls)
+        if self._grid_walls is not self.walls:
+            self._grid_walls, self._grid_deg = self.walls, grid_direction_deg(self.walls)
+        grid = self._grid_deg
         if grid is None:
             return
         x, P = self.state_mean, self.state_covariance
