@@ -59,27 +59,29 @@ STRAIGHT_DEG = 10.0
 GRID_MIN_RESULTANT = 0.4
 
 
+def finite_nonnegative(**values: float) -> dict[str, float]:
+    """``values`` as floats; ValueError naming the first that is not a finite number ≥ 0."""
+    for k, v in values.items():
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{k} must be a finite number ≥ 0")
+    return {k: float(v) for k, v in values.items()}
+
+
 def calibration_params(
     bias0_std_deg: float = BIAS0_STD_DEG,
     bias_walk_deg: float = BIAS_WALK_DEG,
     scale0_std: float = SCALE0_STD,
     scale_walk: float = SCALE_WALK,
 ) -> dict[str, float]:
-    for k, v in (("bias0_std_deg", bias0_std_deg), ("bias_walk_deg", bias_walk_deg), ("scale0_std", scale0_std),
-                 ("scale_walk", scale_walk)):
-        if not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{k} must be a finite number ≥ 0")
-    return {"bias0_std_deg": float(bias0_std_deg), "bias_walk_deg": float(bias_walk_deg),
-            "scale0_std": float(scale0_std), "scale_walk": float(scale_walk)}
+    return finite_nonnegative(bias0_std_deg=bias0_std_deg, bias_walk_deg=bias_walk_deg, scale0_std=scale0_std,
+                              scale_walk=scale_walk)
 
 
 def grid_params(grid_sigma_deg: float = GRID_SIGMA_DEG, grid_gate_deg: float = GRID_GATE_DEG,
                 grid_steps: float = GRID_STEPS) -> dict[str, float]:
-    for k, v in (("grid_sigma_deg", grid_sigma_deg), ("grid_gate_deg", grid_gate_deg), ("grid_steps", grid_steps)):
-        if not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{k} must be a finite number ≥ 0")
-    return {"grid_sigma_deg": float(grid_sigma_deg), "grid_gate_deg": float(grid_gate_deg),
-            "grid_steps": float(max(1, round(grid_steps)))}
+    out = finite_nonnegative(grid_sigma_deg=grid_sigma_deg, grid_gate_deg=grid_gate_deg, grid_steps=grid_steps)
+    out["grid_steps"] = float(max(1, round(out["grid_steps"])))
+    return out
 
 
 def grid_direction_deg(walls: np.ndarray) -> float | None:
