@@ -106,6 +106,11 @@ KLD_EPSILON = 0.15
 FIX_BIAS_SHARE = 0.0
 FIX_BIAS_STEPS = 20.0
 
+#: the building's grid per straight run as a likelihood of each particle's heading bias
+#: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off), off by default: a candidate
+#: under study (docs/msft-evaluation.md)
+GRID_SIGMA_DEG = 0.0
+
 #: the share κ of a Kalman update's spread the PF's cloud keeps after a fix or a beacon range,
 #: without a plan (``ParticleFilterTracker._keep_spread``). 0.5 was chosen over 1 on the tune and
 #: stress scenarios of benchmarks/scenario_family.py and the MSFT walks' folds 0–1 without the plan
@@ -426,10 +431,13 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         fix_bias_share: float = FIX_BIAS_SHARE,
         fix_bias_steps: float = FIX_BIAS_STEPS,
         kalman_floor: float = KALMAN_FLOOR,
+        grid_sigma_deg: float = GRID_SIGMA_DEG,
+        grid_gate_deg: float = selfcal.GRID_GATE_DEG,
+        grid_steps: float = selfcal.GRID_STEPS,
         **pf_params,
     ) -> None:
-        """The seed form's configuration (``pf_params``) plus the calibration's random walks
-        and the fixes' shared error."""
+        """The seed form's configuration (``pf_params``) plus the calibration's random walks,
+        the fixes' shared error and the building's grid."""
         self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
         if not 0.0 <= fix_bias_share < 1.0:
             raise ValueError("fix_bias_share must be at least 0 and below 1")
@@ -438,7 +446,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if not 0.0 <= kalman_floor <= 1.0:
             raise ValueError("kalman_floor must be between 0 and 1")
         super()._configure(walls, seed, **pf_params)
-        self.params.update(self._cal, kalman_floor=float(kalman_floor))
+        self.params.update(self._cal, kalman_floor=float(kalman_floor),
+                           **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps))
 
     def _set_fix_bias(self, share: float, steps: float) -> None:
@@ -467,6 +476,22 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         moved[:, 1] += d * np.cos(h)
         moved[:, :2] += math.sqrt(self.params["q"]) * rng.standard_normal((n, 2))
         self._settle(moved, step.length_m)
+        self._observe_grid(step)
+
+    def _observe_grid(self, step: Step) -> None:
+        """The building's grid per straight run (``selfcal.Calibrating._observe_grid``) as a
+        likelihood: when the cloud's mean corrected heading is within ``grid_gate_deg`` of a grid
+        direction, each particle is weighed by N(rᵢ; 0, ``grid_sigma_deg``), rᵢ the offset of the
+        run's heading + bᵢ from the nearest grid direction (so a cloud that holds two biases 90°
+        apart keeps both)."""
+        offset = self._grid_offset(step)
+        if offset is None:
+            return
+        p = self.params
+        if abs(selfcal.wrap_deg(offset - self.heading_bias_deg, 90.0)) > p["grid_gate_deg"]:
+            return
+        r = (offset - np.degrees(self.particles[:, 2]) + 45.0) % 90.0 - 45.0
+        self._reweight(-0.5 * (r / p["grid_sigma_deg"]) ** 2)
 
     def update(self, fix: Fix) -> None:
         floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)
@@ -555,12 +580,13 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         self._quantize()
 
     def _state(self) -> dict:
-        return {**super()._state(), "dim": self.dim}
+        return {**super()._state(), "dim": self.dim, **self._run_state()}
 
     def _load_state(self, state: dict) -> None:
         if state.get("dim", 4) != self.dim:  # stored before the fixes' shared error: go on without it
             self._set_fix_bias(0.0, self.params["fix_bias_steps"])
         super()._load_state(state)
+        self._load_run(state)
 
     @property
     def state_mean(self) -> np.ndarray:

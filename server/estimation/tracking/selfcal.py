@@ -211,6 +211,22 @@ class Calibrating:
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    def _grid_offset(self, step: Step) -> float | None:
+        """Extend the straight run by ``step``; when an observation of the grid is due (the run has
+        grown by ``grid_steps``, ``grid_sigma_deg`` > 0, the walls have a grid), the grid direction
+        minus the run's mean heading (degrees, to be wrapped with b mod 90°), else None."""
+        p = self.params
+        if p["grid_sigma_deg"] <= 0:
+            return None
+        self._run = self._run.extended(step.heading_deg)
+        if self._run.n % int(p["grid_steps"]):
+            return None
+        if self._grid_walls is not self.walls:
+            self._grid_walls, self._grid_deg = self.walls, grid_direction_deg(self.walls)
+        if self._grid_deg is None:
+            return None
+        return self._grid_deg - self._run.mean_deg
+
     def _observe_grid(self, step: Step) -> None:
         """Heuristic drift elimination per straight run (``grid_sigma_deg`` > 0, on a floor whose
         walls have a grid): in a rectilinear building people walk along its grid, so each time a
@@ -220,19 +236,12 @@ class Calibrating:
         correlation. Per run, not per step (the form tried before, which lost walks whose bias
         passed a wrong grid direction): a corridor is a few observations, not one per step, and
         a turn (any step more than ``STRAIGHT_DEG`` off the run's mean) starts a new run."""
+        offset = self._grid_offset(step)
+        if offset is None:
+            return
         p = self.params
-        if p["grid_sigma_deg"] <= 0:
-            return
-        self._run = self._run.extended(step.heading_deg)
-        if self._run.n % int(p["grid_steps"]):
-            return
-        if self._grid_walls is not self.walls:
-            self._grid_walls, self._grid_deg = self.walls, grid_direction_deg(self.walls)
-        grid = self._grid_deg
-        if grid is None:
-            return
         x, P = self.state_mean, self.state_covariance
-        r = wrap_deg(grid - self._run.mean_deg - math.degrees(x[2]), 90.0)
+        r = wrap_deg(offset - math.degrees(x[2]), 90.0)
         if abs(r) > p["grid_gate_deg"]:
             return
         K = P[:, 2] / (P[2, 2] + math.radians(p["grid_sigma_deg"]) ** 2)
