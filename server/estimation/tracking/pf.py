@@ -480,18 +480,18 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
 
     def _observe_grid(self, step: Step) -> None:
         """The building's grid per straight run (``selfcal.Calibrating._observe_grid``) as a
-        likelihood: when the cloud's mean corrected heading is within ``grid_gate_deg`` of a grid
-        direction, each particle is weighed by N(rᵢ; 0, ``grid_sigma_deg``), rᵢ the offset of the
-        run's heading + bᵢ from the nearest grid direction (so a cloud that holds two biases 90°
-        apart keeps both)."""
+        likelihood: each particle is weighed by N(rᵢ; 0, ``grid_sigma_deg``), rᵢ the offset of
+        the run's heading + bᵢ from the nearest grid direction, when the cloud's mean offset (mod
+        90°: the weighted circular mean of 4rᵢ, /4) is within ``grid_gate_deg``. Mod 90° all
+        through, so a cloud that holds two biases 90° apart keeps both."""
         offset = self._grid_offset(step)
         if offset is None:
             return
+        r = np.radians((offset - np.degrees(self.particles[:, 2]) + 45.0) % 90.0 - 45.0)
+        mean_r = math.degrees(np.angle(self.weights @ np.exp(4j * r))) / 4.0
         p = self.params
-        if abs(selfcal.wrap_deg(offset - self.heading_bias_deg, 90.0)) > p["grid_gate_deg"]:
-            return
-        r = (offset - np.degrees(self.particles[:, 2]) + 45.0) % 90.0 - 45.0
-        self._reweight(-0.5 * (r / p["grid_sigma_deg"]) ** 2)
+        if abs(mean_r) <= p["grid_gate_deg"]:
+            self._reweight(-0.5 * (r / math.radians(p["grid_sigma_deg"])) ** 2)
 
     def update(self, fix: Fix) -> None:
         floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)

@@ -53,7 +53,7 @@ TUNABLE: dict[str, Tunable] = {
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
                             "after a fix or beacon range (pf, no plan)"),
     "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, per straight run "
-                              "(0: off; ekf, ukf, skpf, with walls)"),
+                              "(0: off; ekf, ukf, skpf, pf, with walls)"),
     "grid_gate_deg": Tunable(0.0, 45.0, "° largest offset of a straight run from the grid that is observed"),
     "grid_steps": Tunable(1, 1000, "a straight run observes the grid every this many steps", integer=True),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
