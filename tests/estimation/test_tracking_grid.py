@@ -106,3 +106,65 @@ def test_a_restored_tracker_continues_its_run_exactly(name):
     np.testing.assert_array_equal(restored.state_covariance, t.state_covariance)
     assert restored.heading_bias_deg == pytest.approx(-10.0, abs=1.5)
 
+
+
+# -- the PF: the grid as a likelihood of each particle's bias ---------------------------------------
+#: the grid of WALLS, far from the walk (the walls themselves never kill a particle here)
+FAR = [[x1 + 500.0, y1, x2 + 500.0, y2] for x1, y1, x2, y2 in WALLS]
+
+
+def pf(walls=FAR, **params):
+    return make_tracker("pf", [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=3, **params)
+
+
+def pf_walk(t, headings, start: int = 0) -> None:
+    for k, h in enumerate(headings):
+        t.predict(Step(float(start + k), 0.7, float(h), 0.05, 2.0))
+
+
+def test_the_pf_learns_a_bias_from_the_grid_without_fixes():
+    t, off = pf(**ON), pf(**OFF)
+    pf_walk(t, [102.0] * 24)
+    pf_walk(off, [102.0] * 24)
+    assert t.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
+    assert math.sqrt(t.state_covariance[2, 2]) < math.radians(4.0)  # narrowed from the 10° prior
+    assert abs(off.heading_bias_deg) < 2.0
+    assert math.sqrt(off.state_covariance[2, 2]) > math.radians(8.0)
+
+
+def test_the_pf_keeps_two_biases_90_degrees_apart():
+    t = pf(**ON)
+    half = len(t.particles) // 2
+    t.particles[:half, 2] = math.radians(-12.0)
+    t.particles[half:, 2] = math.radians(78.0)
+    pf_walk(t, [102.0] * 8)  # one observation: both modes are on the grid
+    b = np.degrees(t.particles[:, 2])
+    near = t.weights[np.abs(b + 12.0) < 10.0].sum()
+    far = t.weights[np.abs(b - 78.0) < 10.0].sum()
+    assert near + far > 0.99
+    assert 0.3 < near < 0.7
+
+
+def test_the_pf_observes_nothing_off_the_grid_or_without_walls():
+    for walls, heading in ((FAR, 135.0), (None, 102.0)):  # 45° off the grid; no plan
+        t, ref = pf(walls, **ON), pf(walls, **OFF)
+        pf_walk(t, [heading] * 20)
+        pf_walk(ref, [heading] * 20)
+        np.testing.assert_array_equal(t.particles, ref.particles)
+        np.testing.assert_array_equal(t.weights, ref.weights)
+
+
+def test_a_restored_pf_continues_its_run_exactly():
+    t = pf(**ON)
+    pf_walk(t, [100.0] * 5)
+    state = json.loads(json.dumps(t.to_dict()))
+    assert state["state"]["run"][1] == 5
+    restored = tracker_from_dict(state)
+    pf_walk(t, [100.0] * 6, start=5)
+    pf_walk(restored, [100.0] * 6, start=5)
+    np.testing.assert_array_equal(restored.particles, t.particles)
+    np.testing.assert_array_equal(restored.weights, t.weights)
+    del state["state"]["run"]  # stored before the grid: starts a new run
+    older = tracker_from_dict(state)
+    pf_walk(older, [100.0] * 6, start=5)
+    assert older._run.n == 6

@@ -107,8 +107,10 @@ FIX_BIAS_SHARE = 0.0
 FIX_BIAS_STEPS = 20.0
 
 #: the building's grid per straight run as a likelihood of each particle's heading bias
-#: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off), off by default: a candidate
-#: under study (docs/msft-evaluation.md)
+#: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off), off by default: σ 3° every 8
+#: steps was chosen on MSFT folds 0–1 and the tune and stress splits (−8.5 %), then won only 2.6 % on
+#: folds 2–3 (the rule asked 3 %) and nothing on held-out draw 128–143 (docs/msft-evaluation.md, "The
+#: building's grid in the PF, per straight run")
 GRID_SIGMA_DEG = 0.0
 
 #: the share κ of a Kalman update's spread the PF's cloud keeps after a fix or a beacon range,
@@ -414,7 +416,11 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
 
     **The cloud's spread without a plan** (``kalman_floor`` κ, default 0.5): after an accepted
     fix or a beacon range, the particles get N(0, D), D the κ-share of what a Kalman update of
-    the cloud's mean and covariance would keep beyond the reweighted cloud (``_keep_spread``)."""
+    the cloud's mean and covariance would keep beyond the reweighted cloud (``_keep_spread``).
+
+    **The building's grid** (``grid_sigma_deg`` > 0; off by default, ``GRID_SIGMA_DEG``): every
+    ``grid_steps`` of a straight run the particles are weighed by their bias's fit to the walls'
+    grid (``_observe_grid``), the Gaussian filters' heading reference as a likelihood."""
 
     name = "pf"
     dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0)
