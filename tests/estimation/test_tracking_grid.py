@@ -56,6 +56,19 @@ def test_a_straight_run_grows_until_the_walker_turns():
     assert (run.n, run.mean_deg) == (1, -150.0)
 
 
+def test_the_bias_observation_is_a_scalar_kalman_update():
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(4, 4))
+    P = A @ A.T + np.eye(4)
+    x = np.array([1.0, 2.0, 0.1, 1.1])
+    got_x, got_P = selfcal.observe_bias(tuple(x), tuple(map(tuple, P)), 0.05, 0.003)
+    H = np.array([[0.0, 0.0, 1.0, 0.0]])
+    K = P @ H.T / (P[2, 2] + 0.003)
+    np.testing.assert_allclose(got_x, x + K[:, 0] * 0.05, rtol=1e-12)
+    np.testing.assert_allclose(got_P, (np.eye(4) - K @ H) @ P, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(np.array(got_P), np.array(got_P).T)
+
+
 @pytest.mark.parametrize("name", GAUSSIAN)
 def test_a_straight_run_observes_the_bias_every_grid_steps(name):
     # The phone's heading is 12° clockwise of the corridor (a true bias of −12°). Without

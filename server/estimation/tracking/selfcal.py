@@ -196,6 +196,26 @@ def symmetric(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
+Vec4 = tuple[float, ...]
+Mat4 = tuple[tuple[float, ...], ...]
+
+
+def observe_bias(x: Vec4, P: Mat4, innovation: float, var: float) -> tuple[Vec4, Mat4]:
+    """A scalar Kalman update of [x, y, b, s] by an observation of b (innovation z − b̂, noise
+    variance ``var``): x += K·innovation, P −= K·P[2, :] with K = P[:, 2] / (P[2, 2] + var), b and
+    s clamped as everywhere. Written out on Python floats from P's upper triangle (the result is
+    symmetric by construction; NumPy calls on 4 numbers would cost 5× the arithmetic)."""
+    (p00, p01, c0, p03), (_, p11, c1, p13), (_, _, c2, c3), (_, _, _, p33) = P
+    g = 1.0 / (c2 + var)
+    k0, k1, k2, k3 = c0 * g, c1 * g, c2 * g, c3 * g
+    n00, n01, n02, n03 = p00 - c0 * k0, p01 - c0 * k1, c0 - c0 * k2, p03 - c0 * k3
+    n11, n12, n13 = p11 - c1 * k1, c1 - c1 * k2, p13 - c1 * k3
+    n22, n23, n33 = c2 - c2 * k2, c3 - c2 * k3, p33 - c3 * k3
+    x0, x1, b, sc = x
+    return ((x0 + k0 * innovation, x1 + k1 * innovation, *clamp_calibration(b + k2 * innovation, sc + k3 * innovation)),
+            ((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33)))
+
+
 class Calibrating:
     """Mixin of the augmented trackers: what they have learned, for reports and tests; and,
     for the Gaussian ones, the building's grid as a heading reference (``_observe_grid``)."""
@@ -240,12 +260,17 @@ class Calibrating:
         if offset is None:
             return
         p = self.params
-        x, P = self.state_mean, self.state_covariance
+        x, P = self._floats()
         r = wrap_deg(offset - math.degrees(x[2]), 90.0)
-        if abs(r) > p["grid_gate_deg"]:
-            return
-        K = P[:, 2] / (P[2, 2] + math.radians(p["grid_sigma_deg"]) ** 2)
-        self._set_state(clamp(x + K * math.radians(r)), symmetric(P - np.outer(K, P[2, :])))
+        if abs(r) <= p["grid_gate_deg"]:
+            self._set_floats(*observe_bias(x, P, math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2))
+
+    def _floats(self) -> tuple[Vec4, Mat4]:
+        """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""
+        return tuple(self.state_mean.tolist()), tuple(map(tuple, self.state_covariance.tolist()))
+
+    def _set_floats(self, x: Vec4, P: Mat4) -> None:
+        self._set_state(np.array(x), np.array(P))
 
     def _run_state(self) -> dict:
         return {"run": [self._run.mean_deg, self._run.n]} if self._run.n else {}

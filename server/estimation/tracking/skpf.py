@@ -356,6 +356,12 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
         self.x, self.P = x, P
 
+    def _floats(self) -> tuple[selfcal.Vec4, selfcal.Mat4]:
+        return self._x, self._P
+
+    def _set_floats(self, x: selfcal.Vec4, P: selfcal.Mat4) -> None:
+        self._x, self._P = x, P
+
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
                 "x": self.x.tolist(), "P": self.P.tolist(), **self._run_state()}
