@@ -212,6 +212,11 @@ class ParticleFilterXYTracker(Tracker):
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
         if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
             return False
+        return self._reweight(self._range_loglik(beacon_xy, range_m, range_std_m, on_wall))
+
+    def _range_loglik(self, beacon_xy, range_m: float, range_std_m: float, on_wall) -> np.ndarray:
+        """Each particle's log-likelihood of a usable beacon range (in log-range; −∞ on the wrong
+        side of the beacon's wall)."""
         beacon = np.asarray(beacon_xy, float).reshape(2)
         constraint = parse_on_wall(on_wall, self.mean)
         dist = np.hypot(self.particles[:, 0] - beacon[0], self.particles[:, 1] - beacon[1])
@@ -219,7 +224,7 @@ class ParticleFilterXYTracker(Tracker):
         loglik = -0.5 * ((np.log(np.maximum(dist, MIN_LOG_RANGE_M)) - z) / sigma) ** 2
         if constraint is not None:
             loglik = np.where(on_wrong_side(self.particles[:, :2], constraint.wall, constraint.side), -np.inf, loglik)
-        return self._reweight(loglik)
+        return loglik
 
     # -- the floor plan -----------------------------------------------------------------
     def set_walls(self, walls) -> None:
@@ -505,12 +510,12 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             self._keep_spread(*floor)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
-        floor = None
-        if range_usable(range_m, range_std_m, self.params["max_range_m"]):
-            m, beacon = self.state_mean, np.asarray(beacon_xy, float).reshape(2)
-            z, sigma = log_range(range_m, range_std_m)
-            floor = self._kalman_floor(log_range_H(m, beacon), np.array([[sigma**2]]), z - log_range_h(m, beacon))
-        used = super().update_range(beacon_xy, range_m, range_std_m, on_wall)
+        if not range_usable(range_m, range_std_m, self.params["max_range_m"]):
+            return False
+        m, beacon = self.state_mean, np.asarray(beacon_xy, float).reshape(2)
+        z, sigma = log_range(range_m, range_std_m)
+        floor = self._kalman_floor(log_range_H(m, beacon), np.array([[sigma**2]]), z - log_range_h(m, beacon))
+        used = self._reweight(self._range_loglik(beacon_xy, range_m, range_std_m, on_wall))
         if used and floor is not None:
             self._keep_spread(*floor)
         return used
