@@ -68,6 +68,11 @@ def as_mean(mean: Any) -> np.ndarray:
     return arr.copy()
 
 
+def symmetric(P: np.ndarray) -> np.ndarray:
+    """½(P + Pᵀ): a covariance kept exactly symmetric after arithmetic that rounds each side apart."""
+    return 0.5 * (P + P.T)
+
+
 def _symmetric_2x2(cov: Any, error: str) -> np.ndarray:
     """``cov`` (a 2×2 matrix, or a scalar variance for both axes) as a symmetric float
     array; ``ValueError(error)`` when it is neither or not finite."""
@@ -76,7 +81,7 @@ def _symmetric_2x2(cov: Any, error: str) -> np.ndarray:
         arr = np.eye(2) * float(arr)
     if arr.shape != (2, 2) or not np.all(np.isfinite(arr)):
         raise ValueError(error)
-    return 0.5 * (arr + arr.T)
+    return symmetric(arr)
 
 
 def as_cov(cov: Any) -> np.ndarray:

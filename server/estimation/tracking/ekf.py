@@ -23,7 +23,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from server.estimation.tracking import selfcal
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register, symmetric
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.tracking.measurements import (
     MIN_RANGE_M,
@@ -175,12 +175,12 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
         F, G = selfcal.jacobians(x, step.length_m, h)
         vd, vh = selfcal.step_input_var(step)
         self.ekf.x = selfcal.move(x, step.length_m, h)
-        self.ekf.P = selfcal.symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
+        self.ekf.P = symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + self._Q)
         self._observe_grid(step)
 
     def _tidy(self) -> None:
         self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(4))
-        self.ekf.P = selfcal.symmetric(np.asarray(self.ekf.P, float))
+        self.ekf.P = symmetric(np.asarray(self.ekf.P, float))
 
     @property
     def _kf(self) -> ExtendedKalmanFilter:

@@ -10,12 +10,8 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, register, symmetric
 from server.estimation.types import Fix, Step, step_displacement
-
-
-def _symmetric(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
 
 
 class _LinearKF(Tracker):
@@ -36,11 +32,11 @@ class _LinearKF(Tracker):
 
     def predict(self, step: Step) -> None:
         self.kf.predict(u=step_displacement(step.length_m, step.heading_deg))
-        self.kf.P = _symmetric(self.kf.P)
+        self.kf.P = symmetric(self.kf.P)
 
     def _kf_update(self, z: np.ndarray, R: np.ndarray) -> None:
         self.kf.update(np.asarray(z, float), R=R)
-        self.kf.P = _symmetric(self.kf.P)
+        self.kf.P = symmetric(self.kf.P)
 
     @property
     def mean(self) -> np.ndarray:

@@ -59,7 +59,7 @@ import numpy as np
 
 from server.estimation import floorplan  # (a module: floorplan imports tracking.geometry)
 from server.estimation.tracking import selfcal
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register, symmetric
 from server.estimation.tracking.geometry import crosses_walls, on_wrong_side
 from server.estimation.tracking.measurements import (
     MIN_LOG_RANGE_M,
@@ -283,7 +283,7 @@ class ParticleFilterXYTracker(Tracker):
         m = self.weights @ old[:, :2]
         diff = old[:, :2] - m
         P = (diff * self.weights[:, None]).T @ diff + (step_m**2 + self.params["q"]) * np.eye(2)
-        L = np.linalg.cholesky(0.5 * (P + P.T) + 1e-9 * np.eye(2))
+        L = np.linalg.cholesky(symmetric(P) + 1e-9 * np.eye(2))
         draws = m + self.rng.standard_normal((tries * n, 2)) @ L.T
         grid = fit_grid(draws)  # judged as they will be kept: on a grid of their own (``_round``)
         draws = snap(draws, *grid)
@@ -358,7 +358,7 @@ class ParticleFilterXYTracker(Tracker):
     def covariance(self) -> np.ndarray:
         diff = self.particles[:, :2] - self.mean
         P = (diff * self.weights[:, None]).T @ diff
-        return 0.5 * (P + P.T) + 1e-9 * np.eye(2)
+        return symmetric(P) + 1e-9 * np.eye(2)
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]

@@ -192,10 +192,6 @@ def clamp(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def symmetric(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + P.T)
-
-
 Vec4 = tuple[float, ...]
 Mat4 = tuple[tuple[float, ...], ...]
 

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from server.estimation.tracking import selfcal
+from server.estimation.tracking.base import symmetric
 from server.estimation.types import Estimate, FullState
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
@@ -105,7 +106,7 @@ def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: l
         C = FP.T @ np.linalg.inv(P_pred)
         x_s[k] = xs[k] + C @ (x_s[k + 1] - xp[k + 1])
         P = Ps[k] + C @ (P_s[k + 1] - P_pred) @ C.T
-        P_s[k] = 0.5 * (P + P.T)
+        P_s[k] = symmetric(P)
         if np.linalg.eigvalsh(P_s[k])[0] < MIN_VARIANCE:  # round-off after a collapsed PF cloud
             P_s[k] = _psd(P_s[k], MIN_VARIANCE)
     return x_s, P_s

@@ -21,7 +21,7 @@ import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
 
 from server.estimation.tracking import selfcal
-from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register
+from server.estimation.tracking.base import Tracker, as_cov, as_mean, fix_cov, register, symmetric
 from server.estimation.tracking.geometry import enforce_side
 from server.estimation.tracking.measurements import fix_h, log_range, log_range_h, parse_on_wall, range_usable
 from server.estimation.types import Fix, Step
@@ -193,7 +193,7 @@ class UKFTracker(_UKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracke
 
     def _set(self, x, P) -> None:
         self.ukf.x = selfcal.clamp(np.asarray(x, float).reshape(4))
-        self.ukf.P = selfcal.symmetric(np.asarray(P, float))
+        self.ukf.P = symmetric(np.asarray(P, float))
 
     @property
     def _kf(self) -> UnscentedKalmanFilter:
