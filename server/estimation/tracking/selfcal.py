@@ -213,8 +213,10 @@ def observe_bias(x: Vec4, P: Mat4, innovation: float, var: float) -> tuple[Vec4,
 
 
 class Calibrating:
-    """Mixin of the augmented trackers: what they have learned, for reports and tests; and,
-    for the Gaussian ones, the building's grid as a heading reference (``_observe_grid``)."""
+    """Mixin of the augmented trackers: what they have learned, for reports and tests; and the
+    building's grid as a heading reference: the straight run and when it observes the grid
+    (``_grid_offset``), and the Gaussian filters' update (``_observe_grid``; the PF weighs its
+    particles instead)."""
 
     augmented = True
     params: dict[str, Any]
