@@ -445,8 +445,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         grid_sigma_deg: float = GRID_SIGMA_DEG,
         grid_gate_deg: float = selfcal.GRID_GATE_DEG,
         grid_steps: float = selfcal.GRID_STEPS,
-        bias_jump_share: float = 0.0,
-        bias_jump_deg: float = 3.0,
         **pf_params,
     ) -> None:
         """The seed form's configuration (``pf_params``) plus the calibration's random walks,
@@ -458,11 +456,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             raise ValueError("fix_bias_steps must be at least 1")
         if not 0.0 <= kalman_floor <= 1.0:
             raise ValueError("kalman_floor must be between 0 and 1")
-        if not (0.0 <= bias_jump_share <= 1.0 and 0.0 <= bias_jump_deg <= 180.0):
-            raise ValueError("bias_jump_share must be between 0 and 1, bias_jump_deg between 0 and 180")
         super()._configure(walls, seed, **pf_params)
-        self.params.update(self._cal, kalman_floor=float(kalman_floor), bias_jump_share=float(bias_jump_share),
-                           bias_jump_deg=float(bias_jump_deg),
+        self.params.update(self._cal, kalman_floor=float(kalman_floor),
                            **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps))
 
@@ -480,11 +475,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         n = len(self.particles)
         rng = self.rng
         P = self.particles
-        walk = math.radians(self._cal["bias_walk_deg"])
-        if self.params["bias_jump_share"] > 0:  # a heavy-tailed walk: a share of the particles steps wide
-            walk = np.where(rng.random(n) < self.params["bias_jump_share"], math.radians(self.params["bias_jump_deg"]),
-                            walk)
-        P[:, 2] += walk * rng.standard_normal(n)
+        P[:, 2] += math.radians(self._cal["bias_walk_deg"]) * rng.standard_normal(n)
         P[:, 3] = np.clip(P[:, 3] + self._cal["scale_walk"] * rng.standard_normal(n), *selfcal.SCALE_RANGE)
         if self._fix_bias_on():
             phi = math.exp(-1.0 / self.params["fix_bias_steps"])

@@ -48,8 +48,6 @@ TUNABLE: dict[str, Tunable] = {
     "kappa": Tunable(0.0, 10.0, "sigma-point secondary scaling"),
     "bias0_std_deg": Tunable(0.0, 180.0, "° heading-bias prior"),
     "bias_walk_deg": Tunable(0.0, 45.0, "° heading-bias random walk per step"),
-    "bias_jump_share": Tunable(0.0, 1.0, "share of the particles whose heading bias takes a wide step each step (pf)"),
-    "bias_jump_deg": Tunable(0.0, 45.0, "° that wide step of the heading bias (pf)"),
     "fix_bias_share": Tunable(0.0, 0.95, "share of a fix's variance shared along the walk (pf, with a plan)"),
     "fix_bias_steps": Tunable(1.0, 10_000.0, "steps, correlation length of the fixes' shared error (pf)"),
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
