@@ -130,15 +130,10 @@ def pf(walls=FAR, **params):
     return make_tracker("pf", [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=3, **params)
 
 
-def pf_walk(t, headings, start: int = 0) -> None:
-    for k, h in enumerate(headings):
-        t.predict(Step(float(start + k), 0.7, float(h), 0.05, 2.0))
-
-
 def test_the_pf_learns_a_bias_from_the_grid_without_fixes():
     t, off = pf(**ON), pf(**OFF)
-    pf_walk(t, [102.0] * 24)
-    pf_walk(off, [102.0] * 24)
+    walk(t, [102.0] * 24)
+    walk(off, [102.0] * 24)
     assert t.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
     assert math.sqrt(t.state_covariance[2, 2]) < math.radians(4.0)  # narrowed from the 10° prior
     assert abs(off.heading_bias_deg) < 2.0
@@ -150,7 +145,7 @@ def test_the_pf_keeps_two_biases_90_degrees_apart():
     half = len(t.particles) // 2
     t.particles[:half, 2] = math.radians(-12.0)
     t.particles[half:, 2] = math.radians(78.0)
-    pf_walk(t, [102.0] * 8)  # one observation: both modes are on the grid
+    walk(t, [102.0] * 8)  # one observation: both modes are on the grid
     b = np.degrees(t.particles[:, 2])
     near = t.weights[np.abs(b + 12.0) < 10.0].sum()
     far = t.weights[np.abs(b - 78.0) < 10.0].sum()
@@ -161,23 +156,23 @@ def test_the_pf_keeps_two_biases_90_degrees_apart():
 def test_the_pf_observes_nothing_off_the_grid_or_without_walls():
     for walls, heading in ((FAR, 135.0), (None, 102.0)):  # 45° off the grid; no plan
         t, ref = pf(walls, **ON), pf(walls, **OFF)
-        pf_walk(t, [heading] * 20)
-        pf_walk(ref, [heading] * 20)
+        walk(t, [heading] * 20)
+        walk(ref, [heading] * 20)
         np.testing.assert_array_equal(t.particles, ref.particles)
         np.testing.assert_array_equal(t.weights, ref.weights)
 
 
 def test_a_restored_pf_continues_its_run_exactly():
     t = pf(**ON)
-    pf_walk(t, [100.0] * 5)
+    walk(t, [100.0] * 5)
     state = json.loads(json.dumps(t.to_dict()))
     assert state["state"]["run"][1] == 5
     restored = tracker_from_dict(state)
-    pf_walk(t, [100.0] * 6, start=5)
-    pf_walk(restored, [100.0] * 6, start=5)
+    walk(t, [100.0] * 6, start=5)
+    walk(restored, [100.0] * 6, start=5)
     np.testing.assert_array_equal(restored.particles, t.particles)
     np.testing.assert_array_equal(restored.weights, t.weights)
     del state["state"]["run"]  # stored before the grid: starts a new run
     older = tracker_from_dict(state)
-    pf_walk(older, [100.0] * 6, start=5)
+    walk(older, [100.0] * 6, start=5)
     assert older._run.n == 6

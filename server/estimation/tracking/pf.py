@@ -498,7 +498,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         offset = self._grid_offset(step)
         if offset is None:
             return
-        r = np.radians((offset - np.degrees(self.particles[:, 2]) + 45.0) % 90.0 - 45.0)
+        r = np.radians(selfcal.wrap_deg(offset - np.degrees(self.particles[:, 2]), 90.0))
         mean_r = math.degrees(np.angle(self.weights @ np.exp(4j * r))) / 4.0
         p = self.params
         if abs(mean_r) <= p["grid_gate_deg"]:

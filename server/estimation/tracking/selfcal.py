@@ -25,7 +25,7 @@ README's "Tracking design" gives the figures); the phone's own ``length_std_m`` 
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -100,8 +100,11 @@ def grid_direction_deg(walls: np.ndarray) -> float | None:
     return math.degrees(math.atan2(s, c)) / 4.0
 
 
-def wrap_deg(a: float, period: float = 360.0) -> float:
-    """``a`` wrapped to [−period/2, period/2)."""
+Angle = TypeVar("Angle", float, np.ndarray)
+
+
+def wrap_deg(a: Angle, period: float = 360.0) -> Angle:
+    """``a`` (a number, or an array of them) wrapped to [−period/2, period/2)."""
     return (a + period / 2) % period - period / 2
 
 

@@ -135,7 +135,7 @@ class UKFXYTracker(_UKFUpdates, Tracker):
 
 
 @register
-class UKFTracker(_UKFUpdates, selfcal.FilterpyState, selfcal.Calibrating, Tracker):
+class UKFTracker(_UKFUpdates, selfcal.FilterpyState, Tracker):
     """Self-calibrating UKF, state [x, y, b, s].
 
     Prediction: Merwe sigma points of [x, y, b, s, d, h] ~ N([x, d, h], blockdiag(P, σd², σh²))
