@@ -29,6 +29,7 @@ from server.estimation.radio import multilaterate, range_and_std, range_from_rss
 from server.estimation.tracking import (
     FloorTracker,
     LandmarkCorrector,
+    Snap,
     apply_snap,
     make_tracker,
     selfcal,
@@ -315,8 +316,24 @@ class SessionEstimator:
             k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.on(building, floor)
         }
         for snap in self.landmarks.observe(scan.rss)[:1]:
-            apply_snap(self.tracker, snap)
+            self._snap(snap, building, floor)
         return self._record(scan.t, "scan"), refused
+
+    def _snap(self, snap: Snap, building: int, floor: int) -> None:
+        """A landmark snap. A self-calibrating tracker takes it as a measurement, N(beacon,
+        snap_std²·I): refused by the fixes' gate (χ²(2, 0.999)) when the beacon is implausible under
+        its estimate, else its fix update. A snap lands metres from the walker about as often as the
+        tracker is metres off, so a reset that trusts it blindly lost more than it gave
+        (docs/tracking-design.md, "Landmark snaps as gated measurements"). A seed form restarts on
+        the beacon (``apply_snap``): its covariance does not model its drift, so the gate would refuse
+        the snaps that rescue it."""
+        assert self.tracker is not None
+        if not self.tracker.augmented:
+            apply_snap(self.tracker, snap)
+            return
+        fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building)
+        if self._d2(fix, snap.covariance) <= GATE_D2:
+            self.tracker.update(fix)
 
     def _update(self, fix: Fix) -> str | None:
         """Update with the fix unless the innovation gate refuses it (then: why).

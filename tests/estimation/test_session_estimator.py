@@ -10,6 +10,7 @@ import pytest
 
 from server.estimation.session import SessionEstimator, multilateration_fix, time_order
 from server.estimation.tracking import tracker_names
+from server.estimation.tracking.base import TRACKERS
 from server.estimation.types import Beacon, Estimate, Fix, NoFix, Scan, SiteMap, Step
 
 BEACONS = {
@@ -90,6 +91,45 @@ def test_landmark_snap_moves_onto_the_beacon():
     far = Fix(20.0, 20.0, 0, np.eye(2) * 100.0)
     e, _ = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, SITE)
     assert (e.x, e.y) == pytest.approx((5.0, 0.0))
+
+
+LANDMARK = SiteMap({"ble:mark": Beacon("ble:mark", 5.0, 0.0, 0)})  # a position, no radio model: no range update
+OTHER_FLOOR = Fix(0.0, 0.0, 1, np.eye(2))  # a fix on an unconfirmed floor moves nothing
+AUGMENTED = [n for n in tracker_names() if TRACKERS[n].augmented]
+SEED_FORMS = [n for n in tracker_names() if n not in AUGMENTED]
+
+
+def _snap_from(name: str, x: float, y: float) -> tuple[SessionEstimator, np.ndarray, np.ndarray]:
+    """A session at (x, y) with σ = 1 m hearing the landmark at (5, 0) in its strong zone: (session, mean and
+    covariance before the scan)."""
+    est = SessionEstimator(name, seed=2)
+    est.start([x, y], np.eye(2), 0, [], None, "init")
+    assert est.tracker is not None
+    before = (est.tracker.mean.copy(), est.tracker.covariance.copy())
+    est.scan(Scan(0.0, {"ble:mark": -40.0}), OTHER_FLOOR, LANDMARK)
+    return est, *before
+
+
+@pytest.mark.parametrize("name", AUGMENTED)
+def test_a_plausible_landmark_snap_is_fused_as_a_measurement(name):
+    est, mean, cov = _snap_from(name, 4.0, 0.5)
+    after = est.tracker.mean
+    beacon = np.array([5.0, 0.0])
+    # between the estimate and the beacon (a Kalman update of two σ = 1 m positions: about halfway), not onto it
+    assert 0.2 < np.linalg.norm(after - beacon) < 0.8 * np.linalg.norm(mean - beacon)
+    assert np.trace(est.tracker.covariance) < 0.8 * np.trace(cov)
+
+
+@pytest.mark.parametrize("name", AUGMENTED)
+def test_a_landmark_snap_far_from_a_confident_estimate_is_refused(name):
+    est, mean, cov = _snap_from(name, 11.5, 0.0)  # 6.5 m off: d² ≈ 21 > 13.82
+    assert np.array_equal(est.tracker.mean, mean) and np.array_equal(est.tracker.covariance, cov)
+
+
+@pytest.mark.parametrize("name", SEED_FORMS)
+def test_a_seed_form_restarts_on_the_landmark_wherever_it_is(name):
+    est, _, _ = _snap_from(name, 11.5, 0.0)
+    assert est.tracker.mean == pytest.approx([5.0, 0.0], abs=0.3)
 
 
 def _scan_at(est: SessionEstimator, t: float, x: float, y: float) -> tuple[Estimate, str | None]:
