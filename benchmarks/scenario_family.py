@@ -59,6 +59,7 @@ from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E4
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
 from server.estimation.floorplan import Walkable  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
+from server.estimation.tracking.landmarks import LandmarkCorrector  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
 from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 
@@ -227,6 +228,14 @@ def walk(world: World) -> Walk:
             scans.append(Scan(t + 0.1, world.rss(b, true_h, rng)))
             scan_truth.append(b)
     return Walk(np.array(truth), steps, scans, np.array(scan_truth))
+
+
+def has_snap(sc: Scenario) -> bool:
+    """Whether the scenario's walk triggers a landmark snap (an iBeacon's filtered RSS entering its
+    strong zone): what ``--with-snap`` keeps, chosen on the inputs, before any tracker runs."""
+    world = World(sc)
+    corrector = LandmarkCorrector({k: (b.x, b.y) for k, b in world.site().beacons.items()})
+    return any(corrector.observe(s.rss) for s in walk(world).scans)
 
 
 class ModelFixes:
@@ -409,6 +418,8 @@ def main() -> int:
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
     ap.add_argument("--plan", action="store_true", help="the floor has the loop's plan (walls and walkable area)")
     ap.add_argument("--corridor-m", type=float, default=3.0, help="the corridor's width with --plan (m)")
+    ap.add_argument("--with-snap", action="store_true",
+                    help="only the scenarios among --first/--n whose walk triggers a landmark snap")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
     filters = [f for f in a.filters.split(",") if f]
@@ -420,6 +431,8 @@ def main() -> int:
         flt, param = key.split(".", 1)
         PARAMS.setdefault(flt, {})[param] = float(value)
     scenarios = [draw(a.split, i) for i in range(a.first, a.first + a.n)]
+    if a.with_snap:
+        scenarios = [s for s in scenarios if has_snap(s)]
     cov_scale = a.cov_scale
     report = {"split": a.split, "scenarios": [asdict(s) for s in scenarios], "cov_scale": cov_scale}
     kinds = ("knn", "gaussian") if a.fixes == "both" else (a.fixes,)
@@ -428,7 +441,8 @@ def main() -> int:
         results = [run_scenario(s, filters, kind, cov_scale) for s in scenarios]
         rows = table(results, ["pdr-only", "fingerprint-only", *filters])
         what = f"{a.algorithm} model" if kind == "knn" else kind  # ("knn": the model's fixes, of --algorithm)
-        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}, {what} fixes"
+        title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}"
+                 f"{f' ({len(scenarios)} with a landmark snap)' if a.with_snap else ''}, {what} fixes"
                  f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''} "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
