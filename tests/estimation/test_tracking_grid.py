@@ -120,7 +120,6 @@ def test_a_restored_tracker_continues_its_run_exactly(name):
     assert restored.heading_bias_deg == pytest.approx(-10.0, abs=1.5)
 
 
-
 # -- the PF: the grid as a likelihood of each particle's bias ---------------------------------------
 #: the grid of WALLS, far from the walk (the walls themselves never kill a particle here)
 FAR = [[x1 + 500.0, y1, x2 + 500.0, y2] for x1, y1, x2, y2 in WALLS]
