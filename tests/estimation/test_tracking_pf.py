@@ -447,3 +447,67 @@ def test_pf_with_the_kalman_floor_restores_exactly():
         tr.update_range([9.0, 3.0], 2.0, 0.6)
     np.testing.assert_array_equal(back.particles, t.particles)
     np.testing.assert_array_equal(back.weights, t.weights)
+
+
+# -- a step that leaves a few survivors ----------------------------------------------------------
+# A wall along x = 5 with a 4 mm door at y = 0: a cloud walking east through it keeps a few particles.
+DOOR_WALLS = [[5.0, -10.0, 5.0, 0.0], [5.0, 0.004, 5.0, 10.0]]
+
+
+def _through_the_door(min_survivors: float, seed: int = 3):
+    t = make_tracker("pf", [4.7, 0.0], np.diag([0.0025, 0.09]), walls=DOOR_WALLS, seed=seed, q=0.0,
+                     min_survivors=min_survivors)
+    t.predict(Step(0.0, 1.0, 90.0, length_std_m=0.02, heading_std_deg=1.0))  # every particle reaches x = 5
+    return t
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_pf_spreads_a_few_survivors_by_a_kernel_that_crosses_no_wall(seed):
+    """Without the spread the cloud is copies of the few particles that found the door (a
+    covariance of ≈ 0 across it); with it the positions spread by the regularised kernel, and
+    no particle is moved back through the wall."""
+    few = _through_the_door(0.0, seed)
+    assert len(np.unique(few.particles[:, :2], axis=0)) < 20
+    spread = _through_the_door(50.0, seed)
+    assert len(np.unique(spread.particles[:, :2], axis=0)) > 200
+    assert (spread.particles[:, 0] > 5.0).all()
+    assert np.linalg.eigvalsh(spread.covariance)[0] > 5 * np.linalg.eigvalsh(few.covariance)[0]
+    assert np.linalg.eigvalsh(spread.covariance)[0] > 0.005  # (a 7 cm σ at least: h²·P of the cut cloud)
+
+
+def test_pf_spread_is_idle_while_enough_particles_survive():
+    """A walk whose kills leave many survivors is the same to the digit with or without it."""
+    plan, area = _corridor()
+    runs = []
+    for k in (0.0, 50.0):
+        t = make_tracker("pf", [2.0, 2.0], np.eye(2) * 0.05, walls=plan.walls, seed=4, min_survivors=k)
+        t.set_walkable(area)
+        for i in range(30):
+            t.predict(Step(i, 0.7, 90.0 - 14.0, length_std_m=0.1, heading_std_deg=3.0))
+        runs.append(t)
+    np.testing.assert_array_equal(runs[0].particles, runs[1].particles)
+
+
+def test_pf_spread_restores_exactly():
+    import json
+
+    from server.estimation.tracking import tracker_from_dict
+
+    t = _through_the_door(50.0)
+    back = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    np.testing.assert_array_equal(back.particles, t.particles)
+    for tr in (t, back):
+        tr.predict(Step(1.0, 0.7, 90.0))
+        tr.update(Fix(6.5, 0.0, 0, np.eye(2)))
+    np.testing.assert_array_equal(back.particles, t.particles)
+    np.testing.assert_array_equal(back.weights, t.weights)
+
+
+def test_pf_min_survivors_is_checked():
+    from server.estimation.tracking.tuning import BadParam, check_params
+
+    with pytest.raises(ValueError, match="min_survivors"):
+        make_tracker("pf", [0.0, 0.0], np.eye(2), min_survivors=-0.5)
+    with pytest.raises(BadParam, match="min_survivors"):
+        check_params("pf", {"min_survivors": -1})
+    assert check_params("pf-xy", {"min_survivors": 20}) == {"min_survivors": 20.0}

@@ -96,6 +96,10 @@ from server.estimation.types import Fix, Step
 KLD_BIN_M = 1.0
 KLD_EPSILON = 0.15
 
+#: below this effective count of a step's survivors the walls' kill is followed by a
+#: regularised spread (``_spread_survivors``); 0 = off
+MIN_SURVIVORS = 0.0
+
 #: the share of a fix's variance its walk's fixes share, and that error's correlation length
 #: (steps): ``ParticleFilterTracker``; off by default (a session sets it through its
 #: ``filter_params``). ρ = 0.35 over 20 steps was chosen from {0.1, 0.2, 0.35} × {20, 50, 100} on
@@ -168,9 +172,12 @@ class ParticleFilterXYTracker(Tracker):
         kld_bin_m: float = KLD_BIN_M,
         kld_epsilon: float = KLD_EPSILON,
         resample_kills: int = 1,
+        min_survivors: float = MIN_SURVIVORS,
     ) -> None:
         """Everything but the particles: parameters, generator, floor plan."""
         Tracker.__init__(self, None, None, walls=walls, seed=seed)
+        if not min_survivors >= 0.0:
+            raise ValueError("min_survivors must be at least 0")
         if n_particles < 2:
             raise ValueError("n_particles must be at least 2")
         if min_particles is None:
@@ -188,6 +195,7 @@ class ParticleFilterXYTracker(Tracker):
             "resample_threshold": float(resample_threshold),
             "max_range_m": float(max_range_m),
             "resample_kills": int(resample_kills),
+            "min_survivors": float(min_survivors),
         }
         self.rng = make_rng(seed)
         self._grid = None
@@ -259,9 +267,14 @@ class ParticleFilterXYTracker(Tracker):
         if not dead.any():
             return False
         if not dead.all():
+            p = self.params
+            spread = self._position_cov(moved) if p["min_survivors"] > 0 else None
             self.weights[dead] = 0.0
             self.weights /= self.weights.sum()
-            p = self.params
+            survivors = effective_sample_size(self.weights)
+            if spread is not None and survivors < p["min_survivors"]:
+                self._resample()
+                return self._spread_survivors(spread, survivors)
             if p["resample_kills"] or effective_sample_size(self.weights) < p["resample_threshold"] * len(moved):
                 self._resample()
             else:
@@ -274,6 +287,40 @@ class ParticleFilterXYTracker(Tracker):
                 self.weights = np.full(len(redrawn), 1.0 / len(redrawn))
                 return True
         return False
+
+    def _position_cov(self, points: np.ndarray) -> np.ndarray:
+        """The weighted covariance of the positions of ``points`` (rows as the particles')."""
+        diff = points[:, :2] - self.weights @ points[:, :2]
+        return symmetric((diff * self.weights[:, None]).T @ diff)
+
+    def _spread_survivors(self, P: np.ndarray, survivors: float, tries: int = 4) -> bool:
+        """Move each (resampled) particle's position by a kernel N(0, h²·P), the regularised PF's
+        Silverman bandwidth h = (4/((d + 2)·n_s))^(1/(d+4)) for d = 2 and n_s ``survivors``, P the
+        cloud's spread before the walls cut it: the first of ``tries`` draws whose move crosses no
+        wall and ends walkable, judged on the grid they are stored on; a particle with none takes
+        another's accepted draw. False (the cloud as it is) when no draw is accepted."""
+        n = len(self.particles)
+        h2 = (1.0 / max(survivors, 1.0)) ** (1.0 / 3.0)
+        L = np.linalg.cholesky(h2 * P + 1e-9 * np.eye(2))
+        start = np.repeat(self.particles[:, :2], tries, axis=0)
+        draws = start + self.rng.standard_normal((tries * n, 2)) @ L.T
+        grid = fit_grid(draws)
+        draws = snap(draws, *grid)
+        ok = ~self._crosses(start, draws)
+        if self.walkable is not None:
+            ok &= self.walkable.contains(draws)
+        ok = ok.reshape(n, tries)
+        if not ok.any():
+            return False
+        pick = draws.reshape(n, tries, 2)[np.arange(n), ok.argmax(axis=1)]
+        none = ~ok.any(axis=1)
+        if none.any():
+            accepted = pick[~none]
+            pick[none] = accepted[self.rng.integers(len(accepted), size=int(none.sum()))]
+        self.particles[:, :2] = pick
+        if self._grid is not None:  # the positions keep the draws' grid
+            self._grid = (np.concatenate((grid[0], self._grid[0][2:])), np.concatenate((grid[1], self._grid[1][2:])))
+        return True
 
     def _redraw(self, old: np.ndarray, step_m: float, tries: int = 4) -> np.ndarray | None:
         """n particles around the weighted mean of ``old`` (spread its covariance + step_m²·I),

@@ -41,6 +41,8 @@ TUNABLE: dict[str, Tunable] = {
     "resample_threshold": Tunable(0.0, 1.0, "resample below this share of effective particles"),
     "resample_kills": Tunable(0, 1, "1: resample whenever a wall kills, 0: only below resample_threshold",
                               integer=True),
+    "min_survivors": Tunable(0.0, 10_000.0, "effective survivors of a wall kill below which the cloud is "
+                             "spread by a kernel (pf; 0: off)"),
     "max_range_m": Tunable(0.0, 100.0, "m, longest beacon range used"),
     "wall_margin_m": Tunable(0.0, 5.0, "m kept from a wall"),
     "alpha": Tunable(1e-3, 10.0, "sigma-point spread"),
