@@ -468,7 +468,7 @@ def test_pf_spreads_a_few_survivors_by_a_kernel_that_crosses_no_wall(seed):
     no particle is moved back through the wall."""
     few = _through_the_door(0.0, seed)
     assert len(np.unique(few.particles[:, :2], axis=0)) < 20
-    spread = _through_the_door(50.0, seed)
+    spread = _through_the_door(100.0, seed)
     assert len(np.unique(spread.particles[:, :2], axis=0)) > 200
     assert (spread.particles[:, 0] > 5.0).all()
     assert np.linalg.eigvalsh(spread.covariance)[0] > 5 * np.linalg.eigvalsh(few.covariance)[0]
@@ -479,7 +479,7 @@ def test_pf_spread_is_idle_while_enough_particles_survive():
     """A walk whose kills leave many survivors is the same to the digit with or without it."""
     plan, area = _corridor()
     runs = []
-    for k in (0.0, 50.0):
+    for k in (0.0, 100.0):
         t = make_tracker("pf", [2.0, 2.0], np.eye(2) * 0.05, walls=plan.walls, seed=4, min_survivors=k)
         t.set_walkable(area)
         for i in range(30):
@@ -493,7 +493,7 @@ def test_pf_spread_restores_exactly():
 
     from server.estimation.tracking import tracker_from_dict
 
-    t = _through_the_door(50.0)
+    t = _through_the_door(100.0)
     back = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
     np.testing.assert_array_equal(back.particles, t.particles)
     for tr in (t, back):
