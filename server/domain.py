@@ -63,6 +63,7 @@ class BatchAnswer:
     applied_scans: int
     skipped_scans: tuple[ScanNote, ...] = field(default=())
     rejected_fixes: tuple[ScanNote, ...] = field(default=())
+    rejected_snaps: tuple[ScanNote, ...] = field(default=())
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -72,11 +73,13 @@ class BatchAnswer:
             "applied_scans": self.applied_scans,
             "skipped_scans": [{"index": n.index, "reason": n.reason} for n in self.skipped_scans],
             "rejected_fixes": [{"index": n.index, "reason": n.reason} for n in self.rejected_fixes],
+            "rejected_snaps": [{"index": n.index, "reason": n.reason} for n in self.rejected_snaps],
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> BatchAnswer:
-        """Answers stored before the innovation gate have no ``rejected_fixes``."""
+        """Answers stored before the innovation gate have no ``rejected_fixes``, and before the
+        snaps' gate no ``rejected_snaps``."""
         return cls(
             seq=d["seq"],
             estimate=None if d["estimate"] is None else Estimate.from_dict(d["estimate"]),
@@ -84,6 +87,7 @@ class BatchAnswer:
             applied_scans=d["applied_scans"],
             skipped_scans=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("skipped_scans", [])),
             rejected_fixes=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("rejected_fixes", [])),
+            rejected_snaps=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("rejected_snaps", [])),
         )
 
 

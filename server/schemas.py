@@ -388,6 +388,12 @@ class BatchResult(BaseModel):
         [], description="Applied scans whose fingerprint fix the innovation gate refused as an outlier "
         "(their beacon ranges still applied), with why."
     )
+    rejected_snaps: list[SkippedScan] = Field(
+        [], description="Extension: applied scans whose landmark snap (an iBeacon of the site heard strongly "
+        "enough to place the phone at it) the innovation gate refused, the beacon being implausibly far from "
+        "the estimate (a misplaced beacon, or a reading through a wall or a body), with why. Self-calibrating "
+        "filters only (`ekf`, `ukf`, `pf`, `skpf`); the seed forms restart on every snap."
+    )
 
 
 class SessionOut(BaseModel):

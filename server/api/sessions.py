@@ -221,6 +221,7 @@ def batch_result(a: BatchAnswer) -> BatchResult:
         applied_steps=a.applied_steps, applied_scans=a.applied_scans,
         skipped_scans=[SkippedScan(index=n.index, reason=n.reason) for n in a.skipped_scans],
         rejected_fixes=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_fixes],
+        rejected_snaps=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_snaps],
     )
 
 

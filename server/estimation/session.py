@@ -51,6 +51,7 @@ from server.estimation.types import (
     NoFix,
     Scan,
     ScanNote,
+    ScanResult,
     SiteMap,
     Step,
 )
@@ -200,6 +201,7 @@ class SessionEstimator:
         states: list[FullState | None] = []
         skipped: list[ScanNote] = []
         rejected: list[ScanNote] = []
+        rejected_snaps: list[ScanNote] = []
         crowd: list[CrowdCandidate] = []
         applied_steps = applied_scans = 0
         for _, i, item in ordered:
@@ -218,12 +220,15 @@ class SessionEstimator:
                 self.advance(item.t)
                 continue
             cold = not self.started
-            e, refused = self.scan(item, fix, site)
+            result = self.scan(item, fix, site)
+            e = result.estimate
             applied_scans += 1
             estimates.append(e)
             states.append(self.full_state)
-            if refused is not None:
-                rejected.append(ScanNote(i, refused))
+            if result.refused_snap is not None:
+                rejected_snaps.append(ScanNote(i, result.refused_snap))
+            if result.refused_fix is not None:
+                rejected.append(ScanNote(i, result.refused_fix))
             elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
                   and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
                 point = make_crowd_point(e.x, e.y, e.floor, item.rss, e.building)
@@ -232,7 +237,7 @@ class SessionEstimator:
             estimates=tuple(estimates), estimate=self.estimate, applied_steps=applied_steps,
             applied_scans=applied_scans, skipped_scans=tuple(skipped), rejected_fixes=tuple(rejected),
             crowd=tuple(crowd), init_t=ordered[0][2].t if init_undated and ordered else None,
-            states=tuple(states),
+            states=tuple(states), rejected_snaps=tuple(rejected_snaps),
         )
 
     def _use_plan(self, site: SiteMap) -> None:
@@ -282,10 +287,10 @@ class SessionEstimator:
         self.tracker.predict(step)
         return self._record(step.t, "step", step)
 
-    def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> tuple[Estimate, str | None]:
+    def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> ScanResult:
         """Update with one scan's fix, beacon ranges and landmark snaps; start the session on
-        its first fix. Returns the estimate and, when the innovation gate refused the fix
-        (it then moves nothing), why."""
+        its first fix. Returns the estimate and why the innovation gate refused the fix or the
+        snap, if it did (a refused one moves nothing)."""
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
@@ -293,8 +298,8 @@ class SessionEstimator:
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
-            return self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
-                              site.walkable.get((fix.building, fix.floor))), None
+            return ScanResult(self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
+                                         site.walkable.get((fix.building, fix.floor))))
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
@@ -315,25 +320,29 @@ class SessionEstimator:
         self.landmarks.beacons = {
             k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.on(building, floor)
         }
+        refused_snap = None
         for snap in self.landmarks.observe(scan.rss)[:1]:
-            self._snap(snap, building, floor)
-        return self._record(scan.t, "scan"), refused
+            refused_snap = self._snap(snap, building, floor)
+        return ScanResult(self._record(scan.t, "scan"), refused, refused_snap)
 
-    def _snap(self, snap: Snap, building: int, floor: int) -> None:
+    def _snap(self, snap: Snap, building: int, floor: int) -> str | None:
         """A landmark snap. A self-calibrating tracker takes it as a measurement, N(beacon,
         snap_std²·I): refused by the fixes' gate (χ²(2, 0.999)) when the beacon is implausible under
         its estimate, else its fix update. A snap lands metres from the walker about as often as the
         tracker is metres off, so a reset that trusts it blindly lost more than it gave
         (docs/tracking-design.md, "Landmark snaps as gated measurements"). A seed form restarts on
         the beacon (``apply_snap``): its covariance does not model its drift, so the gate would refuse
-        the snaps that rescue it."""
+        the snaps that rescue it. Returns why it refused the snap, if it did."""
         assert self.tracker is not None
         if not self.tracker.augmented:
             apply_snap(self.tracker, snap)
-            return
+            return None
         fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building)
-        if self._d2(fix, snap.covariance) <= GATE_D2:
+        d2 = self._d2(fix, snap.covariance)
+        if d2 <= GATE_D2:
             self.tracker.update(fix)
+            return None
+        return self._outlier(f"landmark snap to {snap.beacon_id}", fix, d2)
 
     def _update(self, fix: Fix) -> str | None:
         """Update with the fix unless the innovation gate refuses it (then: why).
@@ -366,9 +375,13 @@ class SessionEstimator:
             self.tracker.update(replace(fix, covariance=R * student_t_factor(d2)) if learns else fix)
             return None
         self.gated_in_a_row += 1
+        return self._outlier("fix", fix, d2)
+
+    def _outlier(self, what: str, fix: Fix, d2: float) -> str:
+        """Why the gate refused ``fix`` (a fingerprint fix or a landmark snap)."""
+        assert self.tracker is not None
         distance = float(np.hypot(*(np.asarray(fix.mean, float) - self.tracker.mean)))
-        return (f"fix {distance:.1f} m from the estimate is an outlier "
-                f"(squared Mahalanobis distance {d2:.1f} > {GATE_D2})")
+        return f"{what} {distance:.1f} m from the estimate is an outlier (squared Mahalanobis distance {d2:.1f} > {GATE_D2})"
 
     def _d2(self, fix: Fix, R: np.ndarray) -> float:
         """Squared Mahalanobis distance of the fix from the estimate under P + R."""

@@ -230,10 +230,20 @@ class CrowdCandidate:
 
 
 @dataclass(frozen=True)
+class ScanResult:
+    """What one applied scan did: the estimate after it and, where the innovation gate refused
+    them, why it refused the scan's fingerprint fix and its landmark snap (None: not refused)."""
+
+    estimate: Estimate
+    refused_fix: str | None = None
+    refused_snap: str | None = None
+
+
+@dataclass(frozen=True)
 class BatchOutcome:
     """What one batch did to a session: the new track estimates (in time order), the
     estimate after it, how many steps and scans moved the tracker, scans without a fix,
-    fixes the innovation gate refused, and crowd fingerprints to store."""
+    fixes and landmark snaps the innovation gate refused, and crowd fingerprints to store."""
 
     estimates: tuple[Estimate, ...]
     estimate: Estimate | None
@@ -246,6 +256,7 @@ class BatchOutcome:
     init_t: float | None = None
     #: per estimate, a self-calibrating tracker's whole state (``FullState``; None for the others)
     states: tuple[FullState | None, ...] = ()
+    rejected_snaps: tuple[ScanNote, ...] = ()
 
 
 @dataclass(frozen=True)

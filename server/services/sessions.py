@@ -244,7 +244,7 @@ class SessionService:
                     for i in late.items[:100]
                 ]) from None
             answer = BatchAnswer(seq, outcome.estimate, outcome.applied_steps, outcome.applied_scans,
-                                 outcome.skipped_scans, outcome.rejected_fixes)
+                                 outcome.skipped_scans, outcome.rejected_fixes, outcome.rejected_snaps)
             # 3. write it all in one transaction, if nobody applied a batch meanwhile
             with self.db.write() as conn:
                 if store.save_batch(

@@ -219,6 +219,24 @@ def test_an_outlier_fix_is_reported_and_does_not_move_the_estimate(device, site,
     assert (r["estimate"]["x"], r["estimate"]["y"]) == pytest.approx((1.0, 2.0))
 
 
+def test_a_landmark_snap_far_from_the_estimate_is_reported_and_replayed(admin, device, positioning):
+    """A strong reading of a site's iBeacon 28 m from a confident estimate (a misplaced beacon): the
+    self-calibrating tracker refuses the snap and the answer names it; a replay answers the same."""
+    beacons = [*TRANSMITTERS, {"id": "ble:far", "kind": "ble", "floor": 0, "x": 0.0, "y": 30.0}]
+    site = admin.post("/api/v1/sites", json={"name": "lab", "floors": FLOORS, "transmitters": beacons}).json()["id"]
+    sid = open_session(device, site, "ekf")["id"]  # at (1, 2), 1 m²
+    body = {"seq": 0, "scans": [{"t": 0.5, "rss": {"wifi:ap1": -50.0}}, {"t": 1.0, "rss": {"wifi:ap1": -50.0, "ble:far": -40.0}}]}
+    r = device.post(f"/api/v1/sessions/{sid}/batches", json=body)
+    assert r.status_code == 200, r.text
+    answer = r.json()
+    assert answer["rejected_fixes"] == [] and [n["index"] for n in answer["rejected_snaps"]] == [1]
+    assert answer["rejected_snaps"][0]["reason"].startswith("landmark snap to ble:far ")
+    assert "outlier" in answer["rejected_snaps"][0]["reason"]
+    assert math.hypot(answer["estimate"]["x"], answer["estimate"]["y"] - 30.0) > 25.0  # not moved onto the beacon
+    again = device.post(f"/api/v1/sessions/{sid}/batches", json=body)
+    assert again.status_code == 200 and again.json() == answer
+
+
 def test_floor_changes_after_three_agreeing_fixes(device, site, positioning):
     sid = open_session(device, site, "kf")["id"]
     up = [{"t": 0.1 * (i + 1), "rss": {"wifi:up1": -40}} for i in range(3)]

@@ -45,7 +45,7 @@ def feed(est: SessionEstimator, items) -> list[Estimate | None]:
             out.append(est.step(item))
         else:
             scan, fix = item
-            out.append(est.scan(scan, fix, SITE)[0])
+            out.append(est.scan(scan, fix, SITE).estimate)
     return out
 
 
@@ -69,7 +69,7 @@ def test_restored_estimator_continues_exactly(name):
 def test_steps_before_the_first_fix_are_dropped_and_the_first_scan_starts():
     est = SessionEstimator("kf", seed=1)
     assert est.step(Step(0.0, 0.7, 0.0)) is None and est.estimate is None
-    e, _ = est.scan(Scan(1.0, {"wifi:a": -50.0}), Fix(3.0, 4.0, 2, np.eye(2)), EMPTY)
+    e = est.scan(Scan(1.0, {"wifi:a": -50.0}), Fix(3.0, 4.0, 2, np.eye(2)), EMPTY).estimate
     assert e.source == "scan" and (e.x, e.y, e.floor) == (3.0, 4.0, 2)
 
 
@@ -79,7 +79,7 @@ def test_floor_change_needs_three_fixes_and_loads_the_new_walls():
     site = SiteMap(walls={(0, 0): [], (0, 1): [[-1.0, 5.0, 1.0, 5.0]]})
     floors = []
     for i in range(3):
-        e, _ = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), site)
+        e = est.scan(Scan(float(i), {"wifi:x": -50.0}), Fix(2.0, 2.0, 1, np.eye(2)), site).estimate
         floors.append(e.floor)
     assert floors == [0, 0, 1]
     assert est.tracker.walls.tolist() == [[-1.0, 5.0, 1.0, 5.0]]
@@ -89,7 +89,7 @@ def test_landmark_snap_moves_onto_the_beacon():
     est = SessionEstimator("kf", seed=1)
     est.start([20.0, 20.0], None, 0, [], None, "init")
     far = Fix(20.0, 20.0, 0, np.eye(2) * 100.0)
-    e, _ = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, SITE)
+    e = est.scan(Scan(0.0, {"ble:b1": -40.0}), far, SITE).estimate
     assert (e.x, e.y) == pytest.approx((5.0, 0.0))
 
 
@@ -99,20 +99,21 @@ AUGMENTED = [n for n in tracker_names() if TRACKERS[n].augmented]
 SEED_FORMS = [n for n in tracker_names() if n not in AUGMENTED]
 
 
-def _snap_from(name: str, x: float, y: float) -> tuple[SessionEstimator, np.ndarray, np.ndarray]:
+def _snap_from(name: str, x: float, y: float) -> tuple[SessionEstimator, np.ndarray, np.ndarray, str | None]:
     """A session at (x, y) with σ = 1 m hearing the landmark at (5, 0) in its strong zone: (session, mean and
-    covariance before the scan)."""
+    covariance before the scan, why the snap was refused)."""
     est = SessionEstimator(name, seed=2)
     est.start([x, y], np.eye(2), 0, [], None, "init")
     assert est.tracker is not None
     before = (est.tracker.mean.copy(), est.tracker.covariance.copy())
-    est.scan(Scan(0.0, {"ble:mark": -40.0}), OTHER_FLOOR, LANDMARK)
-    return est, *before
+    r = est.scan(Scan(0.0, {"ble:mark": -40.0}), OTHER_FLOOR, LANDMARK)
+    return est, *before, r.refused_snap
 
 
 @pytest.mark.parametrize("name", AUGMENTED)
 def test_a_plausible_landmark_snap_is_fused_as_a_measurement(name):
-    est, mean, cov = _snap_from(name, 4.0, 0.5)
+    est, mean, cov, refused = _snap_from(name, 4.0, 0.5)
+    assert refused is None
     after = est.tracker.mean
     beacon = np.array([5.0, 0.0])
     # between the estimate and the beacon (a Kalman update of two σ = 1 m positions: about halfway), not onto it
@@ -122,18 +123,21 @@ def test_a_plausible_landmark_snap_is_fused_as_a_measurement(name):
 
 @pytest.mark.parametrize("name", AUGMENTED)
 def test_a_landmark_snap_far_from_a_confident_estimate_is_refused(name):
-    est, mean, cov = _snap_from(name, 11.5, 0.0)  # 6.5 m off: d² ≈ 21 > 13.82
+    est, mean, cov, refused = _snap_from(name, 11.5, 0.0)  # 6.5 m off: d² ≈ 21 > 13.82
     assert np.array_equal(est.tracker.mean, mean) and np.array_equal(est.tracker.covariance, cov)
+    distance = np.hypot(*(np.array([5.0, 0.0]) - mean))  # (a PF's mean is its particles')
+    assert refused is not None and refused.startswith(f"landmark snap to ble:mark {distance:.1f} m from the estimate")
 
 
 @pytest.mark.parametrize("name", SEED_FORMS)
 def test_a_seed_form_restarts_on_the_landmark_wherever_it_is(name):
-    est, _, _ = _snap_from(name, 11.5, 0.0)
-    assert est.tracker.mean == pytest.approx([5.0, 0.0], abs=0.3)
+    est, _, _, refused = _snap_from(name, 11.5, 0.0)
+    assert est.tracker.mean == pytest.approx([5.0, 0.0], abs=0.3) and refused is None
 
 
 def _scan_at(est: SessionEstimator, t: float, x: float, y: float) -> tuple[Estimate, str | None]:
-    return est.scan(Scan(t, {"wifi:a": -60.0}), Fix(x, y, 0, np.eye(2) * 1.0), EMPTY)
+    r = est.scan(Scan(t, {"wifi:a": -60.0}), Fix(x, y, 0, np.eye(2) * 1.0), EMPTY)
+    return r.estimate, r.refused_fix
 
 
 @pytest.mark.parametrize("name", tracker_names())

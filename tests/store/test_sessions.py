@@ -73,6 +73,11 @@ def test_an_answer_stored_before_the_gate_reads_back_without_rejected_fixes():
     assert BatchAnswer.from_dict(stored) == BatchAnswer(3, None, 0, 1, (ScanNote(0, "why"),), ())
 
 
+def test_an_answer_with_refused_snaps_reads_back_as_stored():
+    answer = BatchAnswer(4, None, 0, 2, (), (ScanNote(0, "fix"),), (ScanNote(1, "snap"),))
+    assert BatchAnswer.from_dict(answer.to_dict()) == answer
+
+
 def test_crowd_points_are_found_in_their_box_on_their_floor_and_updated(db, site_id):
     with db.write() as conn:
         sessions.add_crowd_fingerprint(conn, site_id, CrowdPoint(1.0, 1.0, 0, {"wifi:a": -60.0}, 2), 370.0, 5.0)
