@@ -337,7 +337,7 @@ class SessionEstimator:
         if not self.tracker.augmented:
             apply_snap(self.tracker, snap)
             return None
-        fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building)
+        fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building, shared_error=False)
         d2 = self._d2(fix, snap.covariance)
         if d2 <= GATE_D2:
             self.tracker.update(fix)

@@ -60,7 +60,9 @@ class Candidate:
 
 @dataclass(frozen=True)
 class Fix:
-    """A position estimate from one scan: mean, 2×2 covariance (m²), floor and its building."""
+    """A position estimate from one scan: mean, 2×2 covariance (m²), floor and its building.
+    ``shared_error``: a fingerprint model's fix, whose error a walk's fixes share (a PF with
+    ``fix_bias_share`` models it); a landmark snap's is its own."""
 
     x: float
     y: float
@@ -69,6 +71,7 @@ class Fix:
     reference_point: str | None = None
     candidates: list[Candidate] = field(default_factory=list)
     building: int = 0
+    shared_error: bool = True
 
     @property
     def mean(self) -> np.ndarray:

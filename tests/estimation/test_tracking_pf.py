@@ -316,9 +316,10 @@ def test_pf_with_a_plan_is_not_dragged_by_fixes_biased_together():
     assert honest[0.3] < 1.5 * honest[0.0] + 0.1
 
 
-@pytest.mark.parametrize("walls", [CORRIDOR, None])
-def test_pf_fix_likelihood_with_the_shared_error_is_hand_computed(walls):
-    """With a plan a fix weighs as N(z; p + √ρ·L·u, (1 − ρ)·R), L Lᵀ = R; without one as N(z; p, R)."""
+@pytest.mark.parametrize(("walls", "shared"), [(CORRIDOR, True), (None, True), (CORRIDOR, False)])
+def test_pf_fix_likelihood_with_the_shared_error_is_hand_computed(walls, shared):
+    """With a plan a fix weighs as N(z; p + √ρ·L·u, (1 − ρ)·R), L Lᵀ = R; without one, or for a fix
+    that does not share the walk's error (a landmark snap), as N(z; p, R)."""
     rho = 0.3
     t = make_tracker("pf", [10.0, 0.0], np.diag([4.0, 0.2]), walls=walls, seed=4, fix_bias_share=rho,
                      resample_threshold=0.0)
@@ -326,8 +327,8 @@ def test_pf_fix_likelihood_with_the_shared_error_is_hand_computed(walls):
     before = t.particles.copy()
     R = np.array([[9.0, 1.0], [1.0, 4.0]])
     z = np.array([11.0, 0.3])
-    t.update(Fix(float(z[0]), float(z[1]), 0, R))
-    if walls is None:
+    t.update(Fix(float(z[0]), float(z[1]), 0, R, shared_error=shared))
+    if walls is None or not shared:
         d, S = before[:, :2] - z, R
     else:
         d, S = before[:, :2] + np.sqrt(rho) * before[:, 4:6] @ np.linalg.cholesky(R).T - z, (1 - rho) * R

@@ -616,8 +616,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         self.particles = self._round(P, refit=False)  # (the weights are as stored: ``_reweight``)
 
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
-        """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error, else the seed form's."""
-        if not self._fix_bias_on():
+        """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error (a fix that shares it),
+        else the seed form's."""
+        if not (fix.shared_error and self._fix_bias_on()):
             return super()._fix_loglik(fix)
         rho = self.params["fix_bias_share"]
         R = fix_cov(fix.covariance)
