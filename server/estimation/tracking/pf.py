@@ -139,6 +139,12 @@ KALMAN_FLOOR = 0.5
 CHI2_99 = {1: 6.63, 2: 9.21}
 
 
+def weighted_covariance(points: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Σ wᵢ (pᵢ − m)(pᵢ − m)ᵀ about the weighted mean m = Σ wᵢ pᵢ of the rows ``points``."""
+    diff = points - weights @ points
+    return (diff * weights[:, None]).T @ diff
+
+
 def gaussian_loglik(points: np.ndarray, z, R: np.ndarray) -> np.ndarray:
     """log N(z; pᵢ, R) of each row pᵢ of ``points``, up to a constant (−½ of the Mahalanobis distance²)."""
     diff = points - np.asarray(z, float)
@@ -281,12 +287,12 @@ class ParticleFilterXYTracker(Tracker):
             alive /= alive.sum()
             survivors = effective_sample_size(alive)
             if survivors < p["min_survivors"]:
-                spread = self._position_cov(moved)  # (the weights before the kill)
+                spread = symmetric(weighted_covariance(moved[:, :2], self.weights))  # (the weights before the kill)
                 self.weights = alive
                 self._resample()
                 return self._spread_survivors(spread, survivors)
             self.weights = alive
-            if p["resample_kills"] or effective_sample_size(self.weights) < p["resample_threshold"] * len(moved):
+            if p["resample_kills"] or survivors < p["resample_threshold"] * len(moved):
                 self._resample()
             else:
                 self.weights = weights_as_stored(self.weights)
@@ -298,11 +304,6 @@ class ParticleFilterXYTracker(Tracker):
                 self.weights = np.full(len(redrawn), 1.0 / len(redrawn))
                 return True
         return False
-
-    def _position_cov(self, points: np.ndarray) -> np.ndarray:
-        """The weighted covariance of the positions of ``points`` (rows as the particles')."""
-        diff = points[:, :2] - self.weights @ points[:, :2]
-        return symmetric((diff * self.weights[:, None]).T @ diff)
 
     def _spread_survivors(self, P: np.ndarray, survivors: float, tries: int = 4) -> bool:
         """Move each (resampled) particle's position by a kernel N(0, h²·P), the regularised PF's
@@ -339,8 +340,7 @@ class ParticleFilterXYTracker(Tracker):
         assert self.walkable is not None
         n = len(old)
         m = self.weights @ old[:, :2]
-        diff = old[:, :2] - m
-        P = (diff * self.weights[:, None]).T @ diff + (step_m**2 + self.params["q"]) * np.eye(2)
+        P = weighted_covariance(old[:, :2], self.weights) + (step_m**2 + self.params["q"]) * np.eye(2)
         L = np.linalg.cholesky(symmetric(P) + 1e-9 * np.eye(2))
         draws = m + self.rng.standard_normal((tries * n, 2)) @ L.T
         grid = fit_grid(draws)  # judged as they will be kept: on a grid of their own (``_round``)
@@ -414,9 +414,7 @@ class ParticleFilterXYTracker(Tracker):
 
     @property
     def covariance(self) -> np.ndarray:
-        diff = self.particles[:, :2] - self.mean
-        P = (diff * self.weights[:, None]).T @ diff
-        return symmetric(P) + 1e-9 * np.eye(2)
+        return symmetric(weighted_covariance(self.particles[:, :2], self.weights)) + 1e-9 * np.eye(2)
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
@@ -665,5 +663,4 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
 
     @property
     def state_covariance(self) -> np.ndarray:
-        diff = self.particles[:, :4] - self.state_mean
-        return (diff * self.weights[:, None]).T @ diff
+        return weighted_covariance(self.particles[:, :4], self.weights)
