@@ -376,6 +376,7 @@ def table(results: list[dict], methods) -> list[dict]:
             row["nees"] = float(np.mean(nees))
             row["nees_p50"] = float(np.median(nees))
             row["nees_over_50_pct"] = 100.0 * float(np.mean(nees > 50))
+            row["nees_over_1000"] = int(np.sum(nees > 1000))  # (a collapsed cloud; in --out only)
             nis = np.concatenate([r[m]["nis"] for r in results])
             row["nis"] = float(nis.mean()) if nis.size else float("nan")
             fx = sum(r[m]["fixes"] for r in results)
