@@ -71,9 +71,9 @@ class BatchAnswer:
             "estimate": None if self.estimate is None else self.estimate.to_dict(),
             "applied_steps": self.applied_steps,
             "applied_scans": self.applied_scans,
-            "skipped_scans": [{"index": n.index, "reason": n.reason} for n in self.skipped_scans],
-            "rejected_fixes": [{"index": n.index, "reason": n.reason} for n in self.rejected_fixes],
-            "rejected_snaps": [{"index": n.index, "reason": n.reason} for n in self.rejected_snaps],
+            "skipped_scans": _note_dicts(self.skipped_scans),
+            "rejected_fixes": _note_dicts(self.rejected_fixes),
+            "rejected_snaps": _note_dicts(self.rejected_snaps),
         }
 
     @classmethod
@@ -85,10 +85,19 @@ class BatchAnswer:
             estimate=None if d["estimate"] is None else Estimate.from_dict(d["estimate"]),
             applied_steps=d["applied_steps"],
             applied_scans=d["applied_scans"],
-            skipped_scans=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("skipped_scans", [])),
-            rejected_fixes=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("rejected_fixes", [])),
-            rejected_snaps=tuple(ScanNote(n["index"], n["reason"]) for n in d.get("rejected_snaps", [])),
+            skipped_scans=_notes(d, "skipped_scans"),
+            rejected_fixes=_notes(d, "rejected_fixes"),
+            rejected_snaps=_notes(d, "rejected_snaps"),
         )
+
+
+def _note_dicts(notes: tuple[ScanNote, ...]) -> list[dict[str, Any]]:
+    return [{"index": n.index, "reason": n.reason} for n in notes]
+
+
+def _notes(d: dict[str, Any], key: str) -> tuple[ScanNote, ...]:
+    """The notes stored under ``key`` (none in an answer stored before that key existed)."""
+    return tuple(ScanNote(n["index"], n["reason"]) for n in d.get(key, []))
 
 
 # --- API keys ---------------------------------------------------------------------------------

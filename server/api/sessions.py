@@ -20,7 +20,7 @@ from server.auth import Principal
 from server.db import Database
 from server.domain import BatchAnswer, SessionInfo
 from server.errors import InvalidField
-from server.estimation.types import Estimate, Scan, Step
+from server.estimation.types import Estimate, Scan, ScanNote, Step
 from server.schemas import (
     BatchIn,
     BatchResult,
@@ -215,13 +215,17 @@ def session_out(info: SessionInfo) -> SessionOut:
     )
 
 
+def _notes_out(notes: tuple[ScanNote, ...]) -> list[SkippedScan]:
+    return [SkippedScan(index=n.index, reason=n.reason) for n in notes]
+
+
 def batch_result(a: BatchAnswer) -> BatchResult:
     return BatchResult(
         seq=a.seq, estimate=None if a.estimate is None else estimate_out(a.estimate),
         applied_steps=a.applied_steps, applied_scans=a.applied_scans,
-        skipped_scans=[SkippedScan(index=n.index, reason=n.reason) for n in a.skipped_scans],
-        rejected_fixes=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_fixes],
-        rejected_snaps=[SkippedScan(index=n.index, reason=n.reason) for n in a.rejected_snaps],
+        skipped_scans=_notes_out(a.skipped_scans),
+        rejected_fixes=_notes_out(a.rejected_fixes),
+        rejected_snaps=_notes_out(a.rejected_snaps),
     )
 
 

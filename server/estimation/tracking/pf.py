@@ -330,9 +330,13 @@ class ParticleFilterXYTracker(Tracker):
             accepted = pick[~none]
             pick[none] = accepted[self.rng.integers(len(accepted), size=int(none.sum()))]
         self.particles[:, :2] = pick
-        if self._grid is not None:  # the positions keep the draws' grid
-            self._grid = (np.concatenate((grid[0], self._grid[0][2:])), np.concatenate((grid[1], self._grid[1][2:])))
+        self._keep_position_grid(grid)
         return True
+
+    def _keep_position_grid(self, grid: tuple[np.ndarray, np.ndarray]) -> None:
+        """New positions drawn on ``grid`` (x, y) keep it; the other columns keep theirs."""
+        if self._grid is not None:
+            self._grid = (np.concatenate((grid[0], self._grid[0][2:])), np.concatenate((grid[1], self._grid[1][2:])))
 
     def _redraw(self, old: np.ndarray, step_m: float, tries: int = 4) -> np.ndarray | None:
         """n particles around the weighted mean of ``old`` (spread its covariance + step_m²·I),
@@ -351,8 +355,7 @@ class ParticleFilterXYTracker(Tracker):
         pick = inside[:n] if len(inside) >= n else inside[self.rng.integers(len(inside), size=n)]
         out = old[systematic_resample(self.weights, float(self.rng.random()))].copy()
         out[:, :2] = pick
-        if self._grid is not None:  # the positions keep the draws' grid
-            self._grid = (np.concatenate((grid[0], self._grid[0][2:])), np.concatenate((grid[1], self._grid[1][2:])))
+        self._keep_position_grid(grid)
         return out
 
     def _reweight(self, loglik: np.ndarray) -> bool:
