@@ -91,6 +91,27 @@ class BatchAnswer:
         )
 
 
+@dataclass(frozen=True)
+class GateMarks:
+    """What the innovation gate refused at one scan estimate of a track (its fingerprint fix, its
+    landmark snap or both), read off the stored answer of the batch that made it."""
+
+    fix_refused: bool = False
+    snap_refused: bool = False
+
+    def __or__(self, other: GateMarks) -> GateMarks:
+        return GateMarks(self.fix_refused or other.fix_refused, self.snap_refused or other.snap_refused)
+
+    def fields(self) -> dict[str, bool]:
+        """The track's extension fields for these marks: each present (true) only when set."""
+        return {name: True for name, on in (("fix_refused", self.fix_refused), ("snap_refused", self.snap_refused))
+                if on}
+
+
+#: an answer's notes that mark a scan estimate, and the mark each sets
+GATE_NOTES = {"rejected_fixes": GateMarks(fix_refused=True), "rejected_snaps": GateMarks(snap_refused=True)}
+
+
 def _note_dicts(notes: tuple[ScanNote, ...]) -> list[dict[str, Any]]:
     return [{"index": n.index, "reason": n.reason} for n in notes]
 

@@ -366,6 +366,10 @@ class TrackEstimateOut(EstimateOut):
     fix_refused: bool | None = Field(
         None, description="Extension, present (true) only on a `scan` estimate whose fingerprint fix the "
         "innovation gate refused (the batch's `rejected_fixes`); absent otherwise.")
+    snap_refused: bool | None = Field(
+        None, description="Extension, present (true) only on a `scan` estimate whose landmark snap the "
+        "innovation gate refused (the batch's `rejected_snaps`: a beacon implausibly far from the estimate); "
+        "absent otherwise.")
 
 
 class SkippedScan(BaseModel):

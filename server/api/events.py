@@ -22,8 +22,9 @@ from sse_starlette import EventSourceResponse, ServerSentEvent
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import Admin, Device, Sessions
-from server.api.sessions import estimate_json
+from server.api.sessions import track_estimate_json
 from server.auth import Principal
+from server.domain import GateMarks
 from server.errors import NotFound
 from server.estimation.types import Estimate
 from server.services.sessions import SessionService
@@ -48,11 +49,9 @@ def _json(value: dict[str, Any]) -> str:
     return orjson.dumps(value).decode()
 
 
-def _estimate_data(idx: int, e: Estimate, refused: bool, session_id: str | None = None) -> str:
-    data = estimate_json(e)
+def _estimate_data(idx: int, e: Estimate, marks: GateMarks | None, session_id: str | None = None) -> str:
+    data = track_estimate_json(e, marks)  # the gate's marks as on the track
     data["idx"] = idx
-    if refused:  # as on the track: present (true) only on a scan whose fix the gate refused
-        data["fix_refused"] = True
     if session_id is not None:
         data["session_id"] = session_id
     return _json(data)
@@ -84,7 +83,8 @@ async def session_events(
     """The session's track as it grows (extension). One event `estimate` per track estimate,
     from the first one (or after `Last-Event-ID`): its `data` the Estimate JSON plus `idx`, its
     index in the track, which is also the event's `id`, and `fix_refused: true` on a scan whose
-    fix the innovation gate refused (as on the track). An event `closed` (data
+    fix the innovation gate refused, `snap_refused: true` on one whose landmark snap it refused (as on
+    the track). An event `closed` (data
     `{"session_id", "track_length"}`) ends the stream when the session is closed. A comment
     line is sent as a heartbeat every 15 s. Same visibility as `GET /sessions/{id}`."""
     await run_in_threadpool(sessions.get, principal, session_id)  # 404 before the stream starts
@@ -98,11 +98,11 @@ async def _session_stream(
     poll = _interval(request, "events_poll_s", DEFAULT_POLL_S)
     while True:
         try:
-            info, rows, refused = await run_in_threadpool(sessions.track_after, principal, session_id, after, BATCH)
+            info, rows, marks = await run_in_threadpool(sessions.track_after, principal, session_id, after, BATCH)
         except NotFound:  # its site was deleted meanwhile
             return
         for idx, e in rows:
-            yield ServerSentEvent(_estimate_data(idx, e, idx in refused), event="estimate", id=str(idx))
+            yield ServerSentEvent(_estimate_data(idx, e, marks.get(idx)), event="estimate", id=str(idx))
             after = idx
         if len(rows) == BATCH:
             continue
@@ -129,14 +129,14 @@ async def site_events(site_id: int, request: Request, sessions: Sessions, _: Adm
 
 async def _site_stream(
     request: Request, sessions: SessionService, site_id: int,
-    first: tuple[dict[str, int], list[tuple[str, int, Estimate]], set[tuple[str, int]]],
+    first: tuple[dict[str, int], list[tuple[str, int, Estimate]], dict[tuple[str, int], GateMarks]],
 ) -> AsyncIterator[ServerSentEvent]:
     poll = _interval(request, "events_poll_s", DEFAULT_POLL_S)
-    open_, rows, refused = first
+    open_, rows, marks = first
     cursors = {sid: length - 2 for sid, length in open_.items()}  # the last index sent per session
     while True:
         for sid, idx, e in rows:
-            yield ServerSentEvent(_estimate_data(idx, e, (sid, idx) in refused, sid), event="estimate")
+            yield ServerSentEvent(_estimate_data(idx, e, marks.get((sid, idx)), sid), event="estimate")
             cursors[sid] = idx
         for sid in [s for s in cursors if s not in open_]:
             del cursors[sid]
@@ -144,6 +144,6 @@ async def _site_stream(
         if len(rows) < BATCH:
             await asyncio.sleep(poll)
         try:
-            open_, rows, refused = await run_in_threadpool(sessions.site_tracks_after, site_id, dict(cursors), BATCH)
+            open_, rows, marks = await run_in_threadpool(sessions.site_tracks_after, site_id, dict(cursors), BATCH)
         except NotFound:  # the site was deleted
             return

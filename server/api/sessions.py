@@ -18,7 +18,7 @@ from server.api.deps import Device, Sessions
 from server.api.fastpath import FastPath, json_body_doc, read_json, run_work
 from server.auth import Principal
 from server.db import Database
-from server.domain import BatchAnswer, SessionInfo
+from server.domain import BatchAnswer, GateMarks, SessionInfo
 from server.errors import InvalidField
 from server.estimation.types import Estimate, Scan, ScanNote, Step
 from server.schemas import (
@@ -143,16 +143,17 @@ def get_track(
         "gives the URL of the next page. Default: no limit (the whole rest of the track)."))] = None,
 ) -> Any:
     """The session's track, oldest first. A `scan` estimate whose fix the innovation gate refused
-    carries the extension `fix_refused: true`. With `since` and/or `limit` (extension) one page of
-    the live track; they do not combine with `smoothed=true` (422)."""
+    carries the extension `fix_refused: true`, one whose landmark snap it refused `snap_refused: true`.
+    With `since` and/or `limit` (extension) one page of the live track; they do not combine with
+    `smoothed=true` (422)."""
     if since is None and limit is None:
-        track, refused = sessions.track_marked(principal, session_id, smoothed)
-        return [track_estimate_out(e, i in refused) for i, e in enumerate(track)]
+        track, marks = sessions.track_marked(principal, session_id, smoothed)
+        return [track_estimate_out(e, marks.get(i)) for i, e in enumerate(track)]
     if smoothed:
         raise InvalidField("smoothed", "smoothed=true does not combine with since or limit: "
                                        "the smoothed track is read whole")
-    page, refused_idx, more = sessions.track_page(principal, session_id, -1 if since is None else since, limit)
-    body = [track_estimate_json(e, idx in refused_idx) for idx, e in page]
+    page, marks, more = sessions.track_page(principal, session_id, -1 if since is None else since, limit)
+    body = [track_estimate_json(e, marks.get(idx)) for idx, e in page]
     headers = {}
     if more and limit is not None:
         url = request.url.include_query_params(since=page[-1][0], limit=limit)
@@ -179,11 +180,11 @@ def estimate_json(e: Estimate) -> dict[str, Any]:
             "covariance": [list(e.covariance[0]), list(e.covariance[1])], "source": e.source}
 
 
-def track_estimate_json(e: Estimate, refused: bool) -> dict[str, Any]:
-    """``track_estimate_out(e, refused)`` as JSON-ready data (``estimate_json``)."""
+def track_estimate_json(e: Estimate, marks: GateMarks | None) -> dict[str, Any]:
+    """``track_estimate_out(e, marks)`` as JSON-ready data (``estimate_json``)."""
     out = estimate_json(e)
-    if refused:
-        out["fix_refused"] = True
+    if marks is not None:
+        out.update(marks.fields())
     return out
 
 
@@ -196,13 +197,12 @@ def session_json(info: SessionInfo) -> dict[str, Any]:
             "last_seq": info.last_seq, "track_length": info.track_length}
 
 
-def track_estimate_out(e: Estimate, refused: bool) -> TrackEstimateOut:
-    """Every field set but ``fix_refused``, which is set only when true (the route leaves out unset fields)."""
-    out = TrackEstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, building=e.building,
-                           covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source)
-    if refused:
-        out.fix_refused = True
-    return out
+def track_estimate_out(e: Estimate, marks: GateMarks | None) -> TrackEstimateOut:
+    """Every field set but the gate's marks (``fix_refused``, ``snap_refused``), each set only when
+    true (the route leaves out unset fields)."""
+    return TrackEstimateOut(t=e.t, x=e.x, y=e.y, floor=e.floor, building=e.building,
+                            covariance=[list(e.covariance[0]), list(e.covariance[1])], source=e.source,
+                            **(marks.fields() if marks is not None else {}))
 
 
 def session_out(info: SessionInfo) -> SessionOut:

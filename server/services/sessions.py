@@ -25,7 +25,7 @@ from sqlalchemy.orm import Session
 
 from server.auth import Principal
 from server.db import Database
-from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, SessionInfo, floor_names
+from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, GateMarks, SessionInfo, floor_names
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
@@ -139,50 +139,52 @@ class SessionService:
         floors, buildings and sources)."""
         return self.track_marked(principal, session_id, smoothed)[0]
 
-    def track_marked(self, principal: Principal, session_id: str, smoothed: bool = False) -> tuple[list[Estimate], set[int]]:
-        """The track (smoothed or not) and the indexes of its scan estimates whose fix the
-        innovation gate refused (from the stored batch answers)."""
+    def track_marked(
+        self, principal: Principal, session_id: str, smoothed: bool = False
+    ) -> tuple[list[Estimate], dict[int, GateMarks]]:
+        """The track (smoothed or not) and, by index, what the innovation gate refused at its
+        scan estimates (their fix or landmark snap; from the stored batch answers)."""
         with self.db.transaction() as s:
             row = _visible(store.feed_state(s.connection(), session_id), principal, session_id)
             track, states = store.track_with_states(s, session_id) if smoothed else (store.track(s, session_id), None)
-            refused = store.refused_fix_indexes(s, session_id)
+            marks = store.gate_marks(s, session_id)
         if not smoothed:
-            return track, refused
+            return track, marks
         # the floors' walkable areas as the batches use them (the site's context, cached by revision)
-        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable, states), refused
+        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable, states), marks
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
-    ) -> tuple[list[tuple[int, Estimate]], set[int], bool]:
+    ) -> tuple[list[tuple[int, Estimate]], dict[int, GateMarks], bool]:
         """One page of the live track: (idx, estimate) after index ``since`` (at most ``limit``;
-        all of them when None), the indexes of its scan estimates whose fix was refused, and
+        all of them when None), the gate's marks on its scan estimates (``track_marked``), and
         whether more estimates follow the page (one row more is read to know)."""
         with self.db.transaction() as s:
             _visible(store.get_session(s, session_id), principal, session_id)
             rows = store.estimates_after(s, session_id, since, 2**62 if limit is None else limit + 1)
             more = limit is not None and len(rows) > limit
             page = rows[:limit] if more else rows
-            refused = _refused_among(s, session_id, page)
-        return page, refused, more
+            marks = _marks_among(s, session_id, page)
+        return page, marks, more
 
     def track_after(
         self, principal: Principal, session_id: str, after_idx: int, limit: int = 500
-    ) -> tuple[SessionInfo, list[tuple[int, Estimate]], set[int]]:
+    ) -> tuple[SessionInfo, list[tuple[int, Estimate]], dict[int, GateMarks]]:
         """The session (as the caller may see it), its estimates after index ``after_idx`` (at
-        most ``limit``) and which of them are scans whose fix was refused, for a live stream.
+        most ``limit``) and the gate's marks on them (``track_marked``), for a live stream.
         The session is read first: when it is closed, the estimates read after it are all it
         will ever have (a closed session takes no batch)."""
         with self.db.transaction() as s:
             info = _visible(store.get_session(s, session_id), principal, session_id)
             rows = store.estimates_after(s, session_id, after_idx, limit)
-            return info, rows, _refused_among(s, session_id, rows)
+            return info, rows, _marks_among(s, session_id, rows)
 
     def site_tracks_after(
         self, site_id: int, cursors: dict[str, int] | None, limit: int = 500
-    ) -> tuple[dict[str, int], list[tuple[str, int, Estimate]], set[tuple[str, int]]]:
+    ) -> tuple[dict[str, int], list[tuple[str, int, Estimate]], dict[tuple[str, int], GateMarks]]:
         """For a site's live stream (admin): its open sessions (id → track length), the
-        estimates after each cursor (session id → last index sent), and the (session, index)
-        of those that are scans whose fix was refused. Without cursors (a stream's first read)
+        estimates after each cursor (session id → last index sent), and the gate's marks on them
+        by (session, index) (``track_marked``). Without cursors (a stream's first read)
         each open session's latest estimate; with cursors a session that has none starts at
         its first estimate, and a session that has one but is no longer open gets the
         estimates it had left."""
@@ -191,7 +193,7 @@ class SessionService:
                 raise NotFound(f"site {site_id} does not exist")
             open_ = store.open_sessions_of_site(s, site_id)
             out: list[tuple[str, int, Estimate]] = []
-            refused: set[tuple[str, int]] = set()
+            marks: dict[tuple[str, int], GateMarks] = {}
             ended = [] if cursors is None else [(sid, after) for sid, after in cursors.items() if sid not in open_]
             wanted = ended + [(sid, length - 2 if cursors is None else cursors.get(sid, -1))
                               for sid, length in sorted(open_.items())]
@@ -200,8 +202,8 @@ class SessionService:
                     continue  # nothing new
                 rows = store.estimates_after(s, sid, after, limit)
                 out.extend((sid, idx, e) for idx, e in rows)
-                refused |= {(sid, idx) for idx in _refused_among(s, sid, rows)}
-            return open_, out, refused
+                marks.update(((sid, idx), m) for idx, m in _marks_among(s, sid, rows).items())
+            return open_, out, marks
 
     def close(self, principal: Principal, session_id: str) -> None:
         """Closing is idempotent: closing a closed session is fine (204 again)."""
@@ -258,13 +260,13 @@ class SessionService:
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
 
 
-def _refused_among(s: Session, session_id: str, rows: Sequence[tuple[int, Estimate]]) -> set[int]:
-    """Which of a run of consecutive track estimates (idx, estimate) are scans whose fix the gate
-    refused: only the batches that made them are read."""
+def _marks_among(s: Session, session_id: str, rows: Sequence[tuple[int, Estimate]]) -> dict[int, GateMarks]:
+    """The gate's marks on a run of consecutive track estimates (idx, estimate): only the
+    batches that made them are read."""
     if not rows:
-        return set()
+        return {}
     seqs = store.batch_seq_range(s, session_id, rows[0][0], rows[-1][0])
-    return set() if seqs is None else store.refused_fix_indexes(s, session_id, seqs)
+    return {} if seqs is None else store.gate_marks(s, session_id, seqs)
 
 
 def _crowdsource(conn: Connection, site_id: int, candidates: Sequence[CrowdCandidate]) -> None:

@@ -478,10 +478,17 @@ function drawSessions() {
     el("polyline", { points: pts.map((p) => `${X(p.x)},${Y(p.y)}`).join(" "), class: "track live", stroke: tr.color }, g);
     const m = b.size / 120;
     for (const p of pts) {
-      if (!p.fix_refused) continue;
-      // a scan whose fix the innovation gate refused: a cross at the estimate it left
-      const mark = el("path", { d: `M${X(p.x) - m},${Y(p.y) - m}L${X(p.x) + m},${Y(p.y) + m}M${X(p.x) - m},${Y(p.y) + m}L${X(p.x) + m},${Y(p.y) - m}`, class: "refused", "data-session": sid, "data-idx": p.idx }, g);
-      el("title", {}, mark).textContent = `session ${sid.slice(0, 8)} · #${p.idx} · fix refused by the innovation gate`;
+      if (p.fix_refused) {
+        // a scan whose fix the innovation gate refused: a cross at the estimate it left
+        const mark = el("path", { d: `M${X(p.x) - m},${Y(p.y) - m}L${X(p.x) + m},${Y(p.y) + m}M${X(p.x) - m},${Y(p.y) + m}L${X(p.x) + m},${Y(p.y) - m}`, class: "refused", "data-session": sid, "data-idx": p.idx }, g);
+        el("title", {}, mark).textContent = `session ${sid.slice(0, 8)} · #${p.idx} · fix refused by the innovation gate`;
+      }
+      if (p.snap_refused) {
+        // a scan whose landmark snap the gate refused (a beacon implausibly far): a diamond around the estimate
+        const r = 1.4 * m;
+        const mark = el("path", { d: `M${X(p.x)},${Y(p.y) - r}L${X(p.x) + r},${Y(p.y)}L${X(p.x)},${Y(p.y) + r}L${X(p.x) - r},${Y(p.y)}Z`, class: "snap-refused", "data-session": sid, "data-idx": p.idx }, g);
+        el("title", {}, mark).textContent = `session ${sid.slice(0, 8)} · #${p.idx} · landmark snap refused by the innovation gate`;
+      }
     }
     const last = pts[pts.length - 1];
     if (last.covariance) {
@@ -579,7 +586,7 @@ async function showSession(s) {
       showFloor(last.building, last.floor);
       drawMap();
     }
-    return; // its estimates come from the live stream, each with its fix_refused mark
+    return; // its estimates come from the live stream, each with its gate marks (fix_refused, snap_refused)
   }
   // replay a closed session: its stored track and its smoothed track, drawn over a few seconds
   const [track, smooth] = await Promise.all([

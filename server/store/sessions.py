@@ -14,7 +14,7 @@ from typing import Any, cast
 from sqlalchemy import Connection, Table, and_, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
-from server.domain import BatchAnswer, FeedState, SessionInfo
+from server.domain import GATE_NOTES, BatchAnswer, FeedState, GateMarks, SessionInfo
 from server.estimation.types import CrowdPoint, Estimate, FullState
 from server.store._direct import DirectStatement
 from server.store._results import tuples
@@ -230,10 +230,11 @@ def batch_seq_range(s: Session, session_id: str, first_idx: int, last_idx: int) 
     return None if lo is None or hi is None else (lo, hi)
 
 
-def refused_fix_indexes(s: Session, session_id: str, seqs: tuple[int, int] | None = None) -> set[int]:
-    """Track indexes of the scan estimates whose fingerprint fix the innovation gate refused,
-    from the stored batch answers (``rejected_fixes`` names scan indexes of a batch) and the
-    estimates' batch seq; no column of its own.
+def gate_marks(s: Session, session_id: str, seqs: tuple[int, int] | None = None) -> dict[int, GateMarks]:
+    """Track index → what the innovation gate refused there (``GateMarks``), for the scan
+    estimates whose fingerprint fix or landmark snap it refused, from the stored batch answers
+    (``rejected_fixes`` and ``rejected_snaps`` name scan indexes of a batch) and the estimates'
+    batch seq; no column of its own.
 
     A batch's scans are applied in time order and each applied scan leaves one ``scan``
     estimate; the batch's applied scans are its scan indexes minus ``skipped_scans``, and
@@ -248,10 +249,10 @@ def refused_fix_indexes(s: Session, session_id: str, seqs: tuple[int, int] | Non
     if seqs is not None:
         batches = batches.where(_BATCHES.c.seq.between(seqs[0], seqs[1]))
     for seq, answer in tuples(s.execute(batches)):
-        if answer and answer.get("rejected_fixes"):
+        if answer and any(answer.get(key) for key in GATE_NOTES):
             refusing[seq] = answer
     if not refusing:
-        return set()
+        return {}
     rows = tuples(s.execute(
         select(_ESTIMATES.c.idx, _ESTIMATES.c.seq)
         .where(_ESTIMATES.c.session_id == session_id, _ESTIMATES.c.seq.in_(list(refusing)),
@@ -261,17 +262,18 @@ def refused_fix_indexes(s: Session, session_id: str, seqs: tuple[int, int] | Non
     scan_rows: dict[int, list[int]] = {}
     for idx, seq in rows:
         scan_rows.setdefault(seq, []).append(idx)
-    out: set[int] = set()
+    out: dict[int, GateMarks] = {}
     for seq, answer in refusing.items():
         skipped = {n["index"] for n in answer.get("skipped_scans", [])}
         total = int(answer.get("applied_scans", 0)) + len(skipped)
         applied = [i for i in range(total) if i not in skipped]
         position = {scan: k for k, scan in enumerate(applied)}
         idxs = scan_rows.get(seq, [])
-        for note in answer["rejected_fixes"]:
-            k = position.get(note["index"])
-            if k is not None and k < len(idxs):
-                out.add(idxs[k])
+        for key, mark in GATE_NOTES.items():
+            for note in answer.get(key, []):
+                k = position.get(note["index"])
+                if k is not None and k < len(idxs):
+                    out[idxs[k]] = out.get(idxs[k], GateMarks()) | mark
     return out
 
 

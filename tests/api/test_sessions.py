@@ -235,6 +235,13 @@ def test_a_landmark_snap_far_from_the_estimate_is_reported_and_replayed(admin, d
     assert math.hypot(answer["estimate"]["x"], answer["estimate"]["y"] - 30.0) > 25.0  # not moved onto the beacon
     again = device.post(f"/api/v1/sessions/{sid}/batches", json=body)
     assert again.status_code == 200 and again.json() == answer
+    # the track marks the scan whose snap was refused (and only that one), whole or paged
+    track = device.get(f"/api/v1/sessions/{sid}/track").json()
+    scans = [i for i, e in enumerate(track) if e["source"] == "scan"]
+    assert [i for i, e in enumerate(track) if e.get("snap_refused")] == [scans[1]]
+    assert not any("fix_refused" in e for e in track)
+    page = device.get(f"/api/v1/sessions/{sid}/track", params={"since": scans[1] - 1, "limit": 1}).json()
+    assert page == [track[scans[1]]]
 
 
 def test_floor_changes_after_three_agreeing_fixes(device, site, positioning):

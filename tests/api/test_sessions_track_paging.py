@@ -125,16 +125,20 @@ def test_refused_fix_marks_on_pages_of_many_batches(device, site, positioning): 
         assert got == track, limit
 
 
-@pytest.mark.parametrize("refused", [False, True])
+@pytest.mark.parametrize("marks", [None, (False, False), (True, False), (False, True), (True, True)])
 @pytest.mark.parametrize("t", [None, 12.5])
-def test_page_items_are_the_schema_dump(refused, t):
+def test_page_items_are_the_schema_dump(marks, t):
     """Pages build their items as plain dicts (the cost of 1,000 pydantic models): each equals
-    the documented schema's dump, with ``fix_refused`` only when true."""
+    the documented schema's dump, with ``fix_refused`` and ``snap_refused`` each only when true."""
     from server.api.sessions import track_estimate_json, track_estimate_out
+    from server.domain import GateMarks
     from server.estimation.types import Estimate
 
     e = Estimate(t, 1.5, -2.25, 3, ((1.0, 0.1), (0.1, 2.0)), "scan", 2)
-    assert track_estimate_json(e, refused) == track_estimate_out(e, refused).model_dump(mode="json", exclude_unset=True)
+    m = None if marks is None else GateMarks(*marks)
+    got = track_estimate_json(e, m)
+    assert got == track_estimate_out(e, m).model_dump(mode="json", exclude_unset=True)
+    assert ("fix_refused" in got, "snap_refused" in got) == (marks or (False, False))
 
 
 def test_live_streams_carry_the_refused_fix_marks(device, admin, site, positioning, live_server):  # noqa: F811

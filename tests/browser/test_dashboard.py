@@ -231,3 +231,34 @@ def test_replay_draws_the_smoothed_track_and_marks_refused_fixes(page, live_serv
     assert marks.count() == 1 and marks.get_attribute("data-idx") == str(1 + 10 + 4)  # init, 10 steps, 5th scan
     assert page.locator("#legend").text_content().count("smoothed track") == 1
     assert page.errors == []
+
+
+def test_replay_marks_a_refused_landmark_snap(page, live_server, site, device):
+    """A strong reading of the site's iBeacon 13 m from a confident estimate: the gate refuses
+    the snap, and the replay draws a diamond at that scan's estimate (and no refused-fix cross)."""
+    from server.api.deps import session_service
+    from server.services.sessions import SessionService
+    from tests.api.test_sessions_smoothed import ScriptedPositioning
+
+    fake = ScriptedPositioning(var=0.5)
+    fake.fixes.extend([(2.5, 5.0), (3.0, 5.0)])
+    app = live_server.app
+    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
+    try:
+        body = {"site_id": site, "filter": "ekf", "initial": {"x": 2.0, "y": 5.0, "floor": 0}}
+        sid = device.post("/api/v1/sessions", json=body).json()["id"]
+        wifi = {"wifi:aa:bb:cc:dd:ee:01": -50.0}
+        scans = [{"t": 0.5, "rss": wifi}, {"t": 1.0, "rss": {**wifi, SITE["transmitters"][2]["id"]: -40.0}}]
+        answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": scans}).json()
+        assert [n["index"] for n in answer["rejected_snaps"]] == [1] and answer["rejected_fixes"] == []
+        device.delete(f"/api/v1/sessions/{sid}")
+    finally:
+        app.dependency_overrides.pop(session_service)
+    login(page, live_server.url, ADMIN_KEY)
+    page.click(f"#sessions li[data-session='{sid}']")
+    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    marks = page.locator(f"path.snap-refused[data-session='{sid}']")
+    assert marks.count() == 1 and marks.get_attribute("data-idx") == "2"  # init, first scan, second scan
+    assert page.locator(f"path.refused[data-session='{sid}']").count() == 0
+    assert "landmark snap refused" in page.locator("#legend").text_content()
+    assert page.errors == []

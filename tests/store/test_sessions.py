@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from server.domain import BatchAnswer
+from server.domain import BatchAnswer, GateMarks
 from server.estimation.types import CrowdPoint, Estimate, ScanNote
 from server.store import sessions
 
@@ -76,6 +76,26 @@ def test_an_answer_stored_before_the_gate_reads_back_without_rejected_fixes():
 def test_an_answer_with_refused_snaps_reads_back_as_stored():
     answer = BatchAnswer(4, None, 0, 2, (), (ScanNote(0, "fix"),), (ScanNote(1, "snap"),))
     assert BatchAnswer.from_dict(answer.to_dict()) == answer
+
+
+def test_gate_marks_land_on_the_scan_estimates_of_the_refusing_batches(db, session_id):
+    """A batch of 4 scans, scan 1 skipped (it left no estimate): the fix refused at scan 2 and
+    the snaps refused at scans 2 and 3 mark the second and third scan estimates; a later batch
+    without refusals marks nothing, and a seq range reads only its own batches."""
+    def scan(t: float) -> Estimate:
+        return replace(step(t, t), source="scan")
+
+    first = BatchAnswer(0, scan(4.0), 1, 3, (ScanNote(1, "no fix"),), (ScanNote(2, "fix"),),
+                        (ScanNote(2, "snap"), ScanNote(3, "snap")))
+    estimates = [scan(1.0), step(1.5, 1.5), scan(3.0), scan(4.0)]  # track indexes 1..4
+    with db.write() as conn:
+        assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={}, answer=first,
+                                   first_idx=1, estimates=estimates)
+        assert sessions.save_batch(conn, session_id, expected_last_seq=0, state={},
+                                   answer=BatchAnswer(1, scan(5.0), 0, 1), first_idx=5, estimates=[scan(5.0)])
+    with db.transaction() as s:
+        assert sessions.gate_marks(s, session_id) == {3: GateMarks(True, True), 4: GateMarks(snap_refused=True)}
+        assert sessions.gate_marks(s, session_id, (1, 1)) == {}
 
 
 def test_crowd_points_are_found_in_their_box_on_their_floor_and_updated(db, site_id):
