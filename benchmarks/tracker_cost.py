@@ -6,7 +6,8 @@ a fixed 1,000 particles), and the to_dict/from_dict cost and stored size (what a
 per batch to load and store a session). Every tracker runs on a floor with walls; ``pf, no plan``
 is the PF without them, where each update also keeps the cloud's spread (``kalman_floor``). The steps'
 headings are drawn at random, so no straight run forms; ``skpf, straight`` walks one way (heading
-σ 2°), so its grid heading reference observes every 8 steps.
+σ 2°), so its grid heading reference observes every 8 steps. Each figure is the best of
+``--rounds`` rounds, the trackers' rounds interleaved, so the ratios hold on a shared machine.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ from server.estimation.types import Fix, Step  # noqa: E402
 WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
 
 
+ROUNDS = 5
+
+
 def best_us(fn, n: int) -> float:
     """Best of 3 runs of n calls, µs per call."""
     best = float("inf")
@@ -38,37 +42,56 @@ def best_us(fn, n: int) -> float:
     return best * 1e6
 
 
-def bench(name: str, repeat: int, walls=WALLS, straight: bool = False) -> dict[str, float]:
-    rng = np.random.default_rng(0)
-    headings = rng.normal(0.0, 2.0, repeat) if straight else rng.uniform(0, 360, repeat)
-    steps = [Step(i, 0.7, float(h), 0.1, 5.0) for i, h in enumerate(headings)]
-    fixes = [Fix(float(x), float(y), 0, np.eye(2) * 2.0) for x, y in rng.normal(0, 1, (repeat, 2))]
-    t = make_tracker(name, [0.0, 0.0], np.eye(2), walls=walls, seed=0)
+class Bench:
+    """One tracker's timed calls. ``run_round`` times each kind of call once (n calls, µs per
+    call) and keeps the best round: every tracker's rounds are interleaved with the others'
+    (``measure``), so load that comes and goes on the machine lands on all of them alike and the
+    ratios between trackers hold even when the absolute figures move."""
 
-    def predict(i):
-        t.predict(steps[i])
+    def __init__(self, name: str, repeat: int, walls=WALLS, straight: bool = False):
+        rng = np.random.default_rng(0)
+        headings = rng.normal(0.0, 2.0, repeat) if straight else rng.uniform(0, 360, repeat)
+        self.steps = [Step(i, 0.7, float(h), 0.1, 5.0) for i, h in enumerate(headings)]
+        self.fixes = [Fix(float(x), float(y), 0, np.eye(2) * 2.0) for x, y in rng.normal(0, 1, (repeat, 2))]
+        self.tracker = make_tracker(name, [0.0, 0.0], np.eye(2), walls=walls, seed=0)
+        self.repeat = repeat
+        self.best = {"predict_us": float("inf"), "update_us": float("inf"), "store_load_us": float("inf")}
 
-    def update(i):
-        t.update(fixes[i])
+    def run_round(self) -> None:
+        t = self.tracker
+        calls = {
+            "predict_us": (lambda i: t.predict(self.steps[i]), self.repeat),
+            "update_us": (lambda i: t.update(self.fixes[i]), self.repeat),
+            "store_load_us": (lambda i: tracker_from_dict(json.loads(json.dumps(t.to_dict()))),
+                              max(self.repeat // 10, 10)),
+        }
+        for key, (fn, n) in calls.items():
+            t0 = time.perf_counter()
+            for i in range(n):
+                fn(i)
+            self.best[key] = min(self.best[key], (time.perf_counter() - t0) / n * 1e6)
 
-    def round_trip(i):
-        tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    def result(self) -> dict[str, float]:
+        return {**self.best, "state_bytes": len(json.dumps(self.tracker.to_dict()))}
 
-    return {
-        "predict_us": best_us(predict, repeat),
-        "update_us": best_us(update, repeat),
-        "store_load_us": best_us(round_trip, max(repeat // 10, 10)),
-        "state_bytes": len(json.dumps(t.to_dict())),
-    }
+
+def measure(benches: dict[str, Bench], rounds: int = ROUNDS) -> dict[str, dict[str, float]]:
+    """Each tracker's best of ``rounds``, the rounds interleaved across trackers."""
+    for _ in range(rounds):
+        for b in benches.values():
+            b.run_round()
+    return {name: b.result() for name, b in benches.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=500)
+    parser.add_argument("--rounds", type=int, default=ROUNDS, help="rounds, interleaved across trackers (best kept)")
     args = parser.parse_args()
-    results = {name: bench(name, args.repeat) for name in tracker_names()}
-    results["pf, no plan"] = bench("pf", args.repeat, walls=None)
-    results["skpf, straight"] = bench("skpf", args.repeat, straight=True)
+    benches = {name: Bench(name, args.repeat) for name in tracker_names()}
+    benches["pf, no plan"] = Bench("pf", args.repeat, walls=None)
+    benches["skpf, straight"] = Bench("skpf", args.repeat, straight=True)
+    results = measure(benches, args.rounds)
     print(f"{'tracker':12s} {'predict µs':>12s} {'update µs':>12s} {'store+load µs':>14s} {'state bytes':>12s}")
     for name, r in results.items():
         print(f"{name:12s} {r['predict_us']:12.1f} {r['update_us']:12.1f} {r['store_load_us']:14.1f} "

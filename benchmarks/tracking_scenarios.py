@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from tracker_cost import bench  # noqa: E402
+from tracker_cost import Bench, measure  # noqa: E402
 
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
@@ -109,7 +109,7 @@ def main() -> None:
                                                     args.walks, filters, args.algorithm, args.seed)))
         finally:
             stop_server(server)
-    cost = {name: bench(name, 300) for name in filters}
+    cost = measure({name: Bench(name, 300) for name in filters})
 
     lines = []
     for res in results:
