@@ -6,6 +6,8 @@ only its own sessions; the API docs pages load their assets from the app."""
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -63,6 +65,29 @@ def feed(client, sid: str, seq: int, n: int, t0: float) -> None:
     steps = [{"t": t0 + 0.5 * i, "length_m": 0.7, "heading_deg": 90.0} for i in range(n)]
     answer = client.post(f"/api/v1/sessions/{sid}/batches", json={"seq": seq, "steps": steps})
     assert answer.status_code == 200, answer.text
+
+
+@contextmanager
+def scripted_fixes(app, fixes=()) -> Iterator:
+    """The app's sessions locate with a scripted fingerprint service (its fixes in order, σ² 0.5),
+    for what the block posts; the real service again after it."""
+    from server.api.deps import session_service
+    from server.services.sessions import SessionService
+    from tests.api.test_sessions_smoothed import ScriptedPositioning
+
+    fake = ScriptedPositioning(var=0.5)
+    fake.fixes.extend(fixes)
+    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
+    try:
+        yield fake
+    finally:
+        app.dependency_overrides.pop(session_service)
+
+
+def replay(page, sid: str) -> None:
+    """Click a listed session and wait until its stored track is replayed."""
+    page.click(f"#sessions li[data-session='{sid}']")
+    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
 
 
 def position(page, sid: str) -> tuple[float, float]:
@@ -136,8 +161,7 @@ def test_dashboard_map_and_live_session(page, live_server, site, device):
     device.delete(f"/api/v1/sessions/{sid}")
     page.click("#refresh-sessions")
     page.wait_for_selector(f"#sessions li[data-session='{sid}'] >> text=closed")
-    page.click(f"#sessions li[data-session='{sid}']")
-    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    replay(page, sid)
     assert position(page, sid) == pytest.approx((x1, y1))
     # beside the live track, the smoothed one (a toggle)
     smoothed = page.locator(f"polyline.track.smoothed[data-session='{sid}']")
@@ -199,14 +223,7 @@ def test_docs_render_offline(page, live_server, path):
 def test_replay_draws_the_smoothed_track_and_marks_refused_fixes(page, live_server, site, device):
     """A walk east with a fix every 2 steps (scripted fingerprint service), one of them 9 m off:
     the replay draws the smoothed path beside the live one and a cross at the refused fix."""
-    from server.api.deps import session_service
-    from server.services.sessions import SessionService
-    from tests.api.test_sessions_smoothed import ScriptedPositioning
-
-    fake = ScriptedPositioning(var=0.5)
-    app = live_server.app
-    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
-    try:
+    with scripted_fixes(live_server.app) as fake:
         body = {"site_id": site, "filter": "kf", "initial": {"x": 2.0, "y": 5.0, "floor": 0}}
         sid = device.post("/api/v1/sessions", json=body).json()["id"]
         steps, scans = [], []
@@ -219,11 +236,8 @@ def test_replay_draws_the_smoothed_track_and_marks_refused_fixes(page, live_serv
         answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "steps": steps, "scans": scans})
         assert [f["index"] for f in answer.json()["rejected_fixes"]] == [4]
         device.delete(f"/api/v1/sessions/{sid}")
-    finally:
-        app.dependency_overrides.pop(session_service)
     login(page, live_server.url, ADMIN_KEY)
-    page.click(f"#sessions li[data-session='{sid}']")
-    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    replay(page, sid)
     live = page.locator(f"g.session[data-session='{sid}'] polyline.live").get_attribute("points")
     smoothed = page.locator(f"polyline.track.smoothed[data-session='{sid}']").get_attribute("points")
     assert len(smoothed.split()) == len(live.split()) == 1 + 16 + 8 and smoothed != live
@@ -236,15 +250,7 @@ def test_replay_draws_the_smoothed_track_and_marks_refused_fixes(page, live_serv
 def test_replay_marks_a_refused_landmark_snap(page, live_server, site, device):
     """A strong reading of the site's iBeacon 13 m from a confident estimate: the gate refuses
     the snap, and the replay draws a diamond at that scan's estimate (and no refused-fix cross)."""
-    from server.api.deps import session_service
-    from server.services.sessions import SessionService
-    from tests.api.test_sessions_smoothed import ScriptedPositioning
-
-    fake = ScriptedPositioning(var=0.5)
-    fake.fixes.extend([(2.5, 5.0), (3.0, 5.0)])
-    app = live_server.app
-    app.dependency_overrides[session_service] = lambda: SessionService(app.state.db, fake)
-    try:
+    with scripted_fixes(live_server.app, [(2.5, 5.0), (3.0, 5.0)]):
         body = {"site_id": site, "filter": "ekf", "initial": {"x": 2.0, "y": 5.0, "floor": 0}}
         sid = device.post("/api/v1/sessions", json=body).json()["id"]
         wifi = {"wifi:aa:bb:cc:dd:ee:01": -50.0}
@@ -252,11 +258,8 @@ def test_replay_marks_a_refused_landmark_snap(page, live_server, site, device):
         answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": scans}).json()
         assert [n["index"] for n in answer["rejected_snaps"]] == [1] and answer["rejected_fixes"] == []
         device.delete(f"/api/v1/sessions/{sid}")
-    finally:
-        app.dependency_overrides.pop(session_service)
     login(page, live_server.url, ADMIN_KEY)
-    page.click(f"#sessions li[data-session='{sid}']")
-    page.wait_for_function("document.getElementById('status').textContent.startsWith('replayed')", timeout=10_000)
+    replay(page, sid)
     marks = page.locator(f"path.snap-refused[data-session='{sid}']")
     assert marks.count() == 1 and marks.get_attribute("data-idx") == "2"  # init, first scan, second scan
     assert page.locator(f"path.refused[data-session='{sid}']").count() == 0
