@@ -113,12 +113,15 @@ GATE_NOTES = {"rejected_fixes": GateMarks(fix_refused=True), "rejected_snaps": G
 
 
 def _note_dicts(notes: tuple[ScanNote, ...]) -> list[dict[str, Any]]:
-    return [{"index": n.index, "reason": n.reason} for n in notes]
+    """The stored form; ``applied`` only where known (the API's answer leaves it out)."""
+    return [{"index": n.index, "reason": n.reason, **({} if n.applied is None else {"applied": n.applied})}
+            for n in notes]
 
 
 def _notes(d: dict[str, Any], key: str) -> tuple[ScanNote, ...]:
-    """The notes stored under ``key`` (none in an answer stored before that key existed)."""
-    return tuple(ScanNote(n["index"], n["reason"]) for n in d.get(key, []))
+    """The notes stored under ``key`` (none in an answer stored before that key existed; no
+    ``applied`` in one stored before it was kept)."""
+    return tuple(ScanNote(n["index"], n["reason"], n.get("applied")) for n in d.get(key, []))
 
 
 # --- API keys ---------------------------------------------------------------------------------

@@ -226,9 +226,9 @@ class SessionEstimator:
             estimates.append(e)
             states.append(self.full_state)
             if result.refused_snap is not None:
-                rejected_snaps.append(ScanNote(i, result.refused_snap))
+                rejected_snaps.append(ScanNote(i, result.refused_snap, applied_scans - 1))
             if result.refused_fix is not None:
-                rejected.append(ScanNote(i, result.refused_fix))
+                rejected.append(ScanNote(i, result.refused_fix, applied_scans - 1))
             elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
                   and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
                 point = make_crowd_point(e.x, e.y, e.floor, item.rss, e.building)

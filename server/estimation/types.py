@@ -218,10 +218,13 @@ class CrowdPoint:
 
 @dataclass(frozen=True)
 class ScanNote:
-    """Why the scan at ``index`` of its batch gave no fix (skipped) or had its fix refused."""
+    """Why the scan at ``index`` of its batch gave no fix (skipped) or had its fix or snap refused;
+    ``applied``: which of the batch's applied scans it was (0-based, in the time order they were
+    applied, so the batch's ``applied``-th scan estimate is its), None for a skipped scan."""
 
     index: int
     reason: str
+    applied: int | None = None
 
 
 @dataclass(frozen=True)

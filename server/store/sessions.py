@@ -237,10 +237,11 @@ def gate_marks(s: Session, session_id: str, seqs: tuple[int, int] | None = None)
     batch seq; no column of its own.
 
     A batch's scans are applied in time order and each applied scan leaves one ``scan``
-    estimate; the batch's applied scans are its scan indexes minus ``skipped_scans``, and
-    the k-th of them (by index) is matched to the batch's k-th scan estimate. That is exact
-    when a batch lists its scans in time order (as a phone sends them); a batch whose scans
-    were sent out of time order may have its marks on the wrong scans of that batch.
+    estimate; a note names which applied scan it was (``applied``), so the batch's scan
+    estimate of that rank is its, whatever order the phone listed the scans in. Answers stored
+    before notes kept ``applied``: the batch's applied scans are its scan indexes minus
+    ``skipped_scans``, and the k-th of them by index is taken as the k-th applied (exact when
+    the batch listed its scans in time order, as a phone sends them).
 
     ``seqs`` (first, last): only the batches of that seq range (a page of the track reads
     the answers of its own batches, not every batch's)."""
@@ -271,7 +272,7 @@ def gate_marks(s: Session, session_id: str, seqs: tuple[int, int] | None = None)
         idxs = scan_rows.get(seq, [])
         for key, mark in GATE_NOTES.items():
             for note in answer.get(key, []):
-                k = position.get(note["index"])
+                k = note.get("applied", position.get(note["index"]))
                 if k is not None and k < len(idxs):
                     out[idxs[k]] = out.get(idxs[k], GateMarks()) | mark
     return out

@@ -219,6 +219,19 @@ def test_an_outlier_fix_is_reported_and_does_not_move_the_estimate(device, site,
     assert (r["estimate"]["x"], r["estimate"]["y"]) == pytest.approx((1.0, 2.0))
 
 
+def test_a_refused_fix_is_marked_on_its_own_scan_when_the_scans_came_out_of_time_order(device, site, positioning):
+    """Scans listed later-first: the one at t 0.5 (listed second) is applied first and refused;
+    the track marks that scan's estimate, not the second one applied, and the answer's notes keep
+    the contract's fields (the applied rank is stored, not sent)."""
+    sid = open_session(device, site, "ekf")["id"]  # at (1, 2), 1 m²
+    scans = [{"t": 1.0, "rss": {"wifi:ap1": -50.0}}, {"t": 0.5, "rss": {"wifi:ap3": -40.0}}]
+    answer = device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": 0, "scans": scans}).json()
+    assert answer["applied_scans"] == 2 and answer["rejected_fixes"][0]["index"] == 1
+    assert [set(note) for note in answer["rejected_fixes"]] == [{"index", "reason"}]
+    track = device.get(f"/api/v1/sessions/{sid}/track").json()
+    assert [(e["t"], "fix_refused" in e) for e in track if e["source"] == "scan"] == [(0.5, True), (1.0, False)]
+
+
 def test_a_landmark_snap_far_from_the_estimate_is_reported_and_replayed(admin, device, positioning):
     """A strong reading of a site's iBeacon 28 m from a confident estimate (a misplaced beacon): the
     self-calibrating tracker refuses the snap and the answer names it; a replay answers the same."""
