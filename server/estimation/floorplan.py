@@ -187,11 +187,6 @@ def count_vertices(geojson: Any) -> int:
     return n
 
 
-def plan_bounds(geojson: Any) -> tuple[float, float, float, float]:
-    """Bounding box of the plan's line and polygon features, in the plan's own frame."""
-    return _bounds([g for _, g in _read(geojson)])
-
-
 def _bounds(geoms: list[BaseGeometry]) -> tuple[float, float, float, float]:
     if not geoms:
         raise PlanError("the plan has no Polygon, MultiPolygon, LineString or MultiLineString feature")

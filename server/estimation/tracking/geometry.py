@@ -41,10 +41,6 @@ def crosses_walls(start: np.ndarray, end: np.ndarray, walls: np.ndarray) -> np.n
     return np.asarray(segments_cross(start[:, None, :], end[:, None, :], walls[None, :, :]).any(axis=1))
 
 
-def crosses_any(start, end, walls: np.ndarray) -> bool:
-    return bool(crosses_walls(np.asarray(start, float), np.asarray(end, float), walls)[0])
-
-
 def side_of(point, wall) -> float:
     """+1 if point is left of the directed wall (x1,y1)→(x2,y2), −1 if right, 0 on it."""
     x1, y1, x2, y2 = (float(v) for v in wall)
