@@ -261,8 +261,9 @@ def detect_steps(walk: Walk, config: PdrConfig | None = None) -> UncalibratedSte
 
 
 def steps_from_events(ev: UncalibratedSteps, weinberg_k: float, heading_offset_deg: float,
-                      length_std_m: float = 0.1, heading_std_deg: float = 8.0) -> list[PdrStep]:
-    """Steps in the site frame: Weinberg length with ``weinberg_k``, heading + offset."""
+                      length_std_m: float | None = 0.1, heading_std_deg: float | None = 8.0) -> list[PdrStep]:
+    """Steps in the site frame: Weinberg length with ``weinberg_k``, heading + offset; std fields of
+    None are not sent."""
     lengths = weinberg(ev.swing, np.zeros_like(ev.swing), weinberg_k)
     heads = (ev.heading_deg + heading_offset_deg) % 360.0
     return [PdrStep(float(t), float(length), float(h), length_std_m, heading_std_deg)

@@ -384,7 +384,8 @@ class Options:
     fix_noise: str = "auto"  # "auto" | "model" (see build_map)
     concurrency: int = 4
     #: the step noise the phone declares: "site" = the per-segment spread (bias included),
-    #: "white" = the spread about each walk's own median (the bias left to the trackers)
+    #: "white" = the spread about each walk's own median (the bias left to the trackers),
+    #: "none" = no std fields (the server's defaults, as a phone that declares nothing)
     step_noise: str = "site"
     #: the phones' heading filter (PdrConfig.heading): "gyro" (the gyro aligned once by the
     #: compass; chosen on folds 0–1, where it beat the others for every filter; on folds 2–3 it
@@ -415,8 +416,9 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
     progress(f"site calibration from {site_cal['walks']} map walks ({pdr.heading} heading, field "
              f"{pdr.field_ut} µT, dip {pdr.dip_deg}°): heading offset "
              f"{site_cal['heading_offset_deg']}°, Weinberg k {site_cal['weinberg_k']}; declared step noise "
-             f"{site_cal['length_std_m']} m, "
-             f"{site_cal['heading_white_std_deg' if opt.step_noise == 'white' else 'heading_std_deg']}° ({opt.step_noise})")
+             + ("none (the server's defaults)" if opt.step_noise == "none" else
+                f"{site_cal['length_std_m']} m, "
+                f"{site_cal['heading_white_std_deg' if opt.step_noise == 'white' else 'heading_std_deg']}° ({opt.step_noise})"))
     floor_info = {}
     fi = Path(data_dir) / "floor_info.json"
     if fi.exists():
@@ -452,9 +454,9 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             else:
                 cal = {k: site_cal[k] for k in ("heading_offset_deg", "weinberg_k")}
                 eval_from = w.t_start
-            noise = {"length_std_m": site_cal["length_std_m"],
-                     "heading_std_deg": site_cal["heading_white_std_deg" if opt.step_noise == "white"
-                                                 else "heading_std_deg"]}
+            noise = {"length_std_m": None, "heading_std_deg": None} if opt.step_noise == "none" else {
+                "length_std_m": site_cal["length_std_m"],
+                "heading_std_deg": site_cal["heading_white_std_deg" if opt.step_noise == "white" else "heading_std_deg"]}
             steps = steps_from_events(p.events, cal["weinberg_k"], cal["heading_offset_deg"], **noise)
             methods: dict[str, list[dict]] = {}
             async with sem:
@@ -592,7 +594,7 @@ def main(a) -> int:
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
-                  fix_noise=a.fix_noise, step_noise=getattr(a, "step_noise", "site"),
+                  fix_noise=a.fix_noise, step_noise=a.step_noise,
                   heading=getattr(a, "heading", "gyro"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
                   plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)),

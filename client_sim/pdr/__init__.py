@@ -19,12 +19,17 @@ class PdrStep:
     t: float
     length_m: float
     heading_deg: float
-    length_std_m: float = 0.08
-    heading_std_deg: float = 6.0
+    #: the declared step noise; None: not sent (the server's defaults apply)
+    length_std_m: float | None = 0.08
+    heading_std_deg: float | None = 6.0
 
     def to_api(self) -> dict:
-        return {"t": round(self.t, 3), "length_m": round(self.length_m, 3), "heading_deg": round(self.heading_deg, 2),
-                "length_std_m": self.length_std_m, "heading_std_deg": self.heading_std_deg}
+        out = {"t": round(self.t, 3), "length_m": round(self.length_m, 3), "heading_deg": round(self.heading_deg, 2)}
+        if self.length_std_m is not None:
+            out["length_std_m"] = self.length_std_m
+        if self.heading_std_deg is not None:
+            out["heading_std_deg"] = self.heading_std_deg
+        return out
 
 
 @dataclass(frozen=True)
