@@ -181,6 +181,15 @@ def test_batches_and_errors(walk):
     assert s["mean"] == 2.5 and s["n"] == 4 and summarise([])["n"] == 0
 
 
+def test_steps_without_declared_noise_send_no_std_fields():
+    """``--step-noise none``: a phone that declares nothing, so the server's defaults apply."""
+    ev = UncalibratedSteps(np.array([T0 + 0.5]), np.full(1, 1.0), np.zeros(1))
+    silent = steps_from_events(ev, 0.5, 10.0, length_std_m=None, heading_std_deg=None)[0].to_api()
+    assert set(silent) == {"t", "length_m", "heading_deg"} and silent["heading_deg"] == 10.0
+    declared = steps_from_events(ev, 0.5, 10.0, length_std_m=0.06, heading_std_deg=13.0)[0].to_api()
+    assert declared["length_std_m"] == 0.06 and declared["heading_std_deg"] == 13.0
+
+
 def test_walk_selection(tmp_path):
     files = [tmp_path / f"w{i}.txt" for i in range(9)]
     maps, tests = default_split(9, 4)
