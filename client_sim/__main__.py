@@ -310,9 +310,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--algorithm", default="knn", help="fingerprint model")
     p.add_argument("--params", help="model params as JSON, e.g. '{\"k\": 7}'")
     p.add_argument("--kinds", default="wifi", help="wifi, ble or wifi,ble")
-    p.add_argument("--calibration", choices=("site", "first-segment", "none"), default="site",
+    p.add_argument("--calibration", choices=("site", "first-segment", "walk", "none"), default="site",
                    help="PDR heading offset and Weinberg k: from the map walks (site), from each test walk's "
-                        "first >=10 m of waypoints (first-segment, that window is not scored), or none")
+                        "first >=10 m of waypoints (first-segment, that window is not scored), from the test "
+                        "walk's own waypoints (walk: an oracle, a diagnostic), or none")
     p.add_argument("--heading", choices=("gyro", "kalman", "quasi-static", "qekf"), default="gyro",
                    help="the phones' PDR heading: the gyro aligned once by the compass (gyro), gyro + compass "
                         "Kalman (kalman), compass in undisturbed field only (quasi-static), gyro + gravity (qekf)")

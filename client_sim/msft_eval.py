@@ -178,8 +178,11 @@ def site_calibration(maps: list[Prepared], min_segment_m: float = 3.0) -> dict:
             "k_range": [round(float(min(ks)), 3), round(float(max(ks)), 3)]}
 
 
-def walk_calibration(p: Prepared, min_distance_m: float = 10.0) -> dict:
-    t_cal = calibration_window(p.walk.waypoints, min_distance_m)
+def walk_calibration(p: Prepared, min_distance_m: float | None = 10.0) -> dict:
+    """Heading offset and Weinberg k of one walk, fitted on its first waypoint segments covering
+    ``min_distance_m`` (an app's initial alignment), or on all of them with None (an oracle: a
+    diagnostic of how the trackers use a PDR as good as the walk allows)."""
+    t_cal = None if min_distance_m is None else calibration_window(p.walk.waypoints, min_distance_m)
     pdr, true = segment_displacements(p.events, p.walk.waypoints, 1.0, t_until=t_cal)
     off, k = fit_rotation_scale(pdr, true)
     return {"heading_offset_deg": round(off, 2), "weinberg_k": round(k, 4), "until_t": t_cal}
@@ -377,7 +380,7 @@ class Options:
     algorithm: str = "knn"
     params: dict | None = None
     kinds: tuple[str, ...] = ("wifi",)
-    calibration: str = "site"  # "site" | "first-segment" | "none"
+    calibration: str = "site"  # "site" | "first-segment" | "walk" (oracle) | "none"
     max_age_s: float = 3.0
     interval_s: float = 2.0
     initial: str = "yes"  # "yes" | "no" | "both"
@@ -448,6 +451,9 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             if opt.calibration == "first-segment":
                 cal = walk_calibration(p)
                 eval_from = cal["until_t"]
+            elif opt.calibration == "walk":  # oracle: the walk's own waypoints (a diagnostic)
+                cal = walk_calibration(p, None)
+                eval_from = w.t_start
             elif opt.calibration == "none":
                 cal = {"heading_offset_deg": 0.0, "weinberg_k": 0.45}
                 eval_from = w.t_start

@@ -160,6 +160,21 @@ def test_site_calibration_takes_the_median_over_map_walks():
     assert cal["weinberg_k"] == pytest.approx(0.4, rel=1e-3)
 
 
+def test_walk_calibration_fits_the_first_segments_or_the_whole_walk():
+    """first-segment: the offset of the first ≥ 10 m; walk (the oracle): of all segments."""
+    from client_sim.msft_eval import walk_calibration
+
+    class W:
+        waypoints = WAYPOINTS
+
+    ev = _events_along(WAYPOINTS, 10.0, 0.4)
+    turned = UncalibratedSteps(ev.t, ev.swing, np.where(ev.t > 10.0, ev.heading_deg - 20.0, ev.heading_deg))
+    first = walk_calibration(Prepared(W(), turned, []))
+    whole = walk_calibration(Prepared(W(), turned, []), None)
+    assert first["heading_offset_deg"] == pytest.approx(10.0, abs=1e-6) and first["until_t"] == 10.0
+    assert whole["until_t"] is None and 10.0 < whole["heading_offset_deg"] < 30.0
+
+
 def test_calibration_window_leaves_the_last_segment_out():
     wp = np.array([[0.0, 0, 0], [5.0, 3, 0], [9.0, 3, 4]])
     assert calibration_window(wp, min_distance_m=100.0) == 5.0
