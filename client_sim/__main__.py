@@ -327,6 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step-noise", choices=("site", "white", "none"), default="site",
                    help="the step noise the phones declare: the map walks' per-segment spread (site), its part "
                         "about each walk's median (white), or no std fields, the server's defaults (none)")
+    p.add_argument("--no-session-scans", action="store_true",
+                   help="sessions get the steps only, no scans (a diagnostic: the trackers without any fix)")
     p.add_argument("--concurrency", type=int, default=4, help="test walks replayed at once")
     p.add_argument("--only-folds", help="with --folds: run only these folds (comma list, e.g. 0,1)")
     p.add_argument("--plan", default="none", help="floor plan variants, comma list of none, walls (stores and "

@@ -346,7 +346,8 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
                         interval_s: float, smoothed: bool = False, seed_salt: int | None = None,
-                        filter_params: dict[str, float] | None = None) -> dict:
+                        filter_params: dict[str, float] | None = None, scans: bool = True) -> dict:
+    """Replay one walk through a session (``scans`` False: steps only, no fix reaches it)."""
     w = p.walk
     init = None
     if initial:
@@ -356,7 +357,7 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
             init["heading_deg"] = round(first[0].heading_deg, 2)
     seed = None if seed_salt is None else zlib.crc32(f"{w.name}|{seed_salt}".encode())
     session = await device.open_session(site_id, flt, init, seed=seed, filter_params=filter_params)
-    batches = make_batches(steps, p.scans, w.t_start, w.t_end, interval_s)
+    batches = make_batches(steps, p.scans if scans else [], w.t_start, w.t_end, interval_s)
     batch_rows = []
     for b in batches:
         res = await device.post_batch(session["id"], b.to_api())
@@ -396,6 +397,9 @@ class Options:
     #: magnetometer Kalman, the default before) | "quasi-static" (gyro; compass offset in
     #: undisturbed field only) | "qekf"
     heading: str = "gyro"
+    #: False: the sessions get the steps only (what a tracker makes of its dead reckoning and the
+    #: plan without a fix; a diagnostic — the map model's own calibration undoes any --fix-noise floor)
+    session_scans: bool = True
     #: floor plan variants to replay every filter on (``PLANS``), and the stores' margin (m)
     plans: tuple[str, ...] = ("none",)
     plan_margin_m: float = 0.0
@@ -477,7 +481,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                     try:
                         res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s,
                                                   opt.smoothed, opt.seed_salt,
-                                                  (opt.filter_params or {}).get(flt))
+                                                  (opt.filter_params or {}).get(flt), opt.session_scans)
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -600,7 +604,7 @@ def main(a) -> int:
                   params=json.loads(a.params) if a.params else None,
                   kinds=tuple(x for x in a.kinds.split(",") if x), calibration=a.calibration,
                   max_age_s=a.max_age, interval_s=a.interval, initial=a.initial, concurrency=a.concurrency,
-                  fix_noise=a.fix_noise, step_noise=a.step_noise,
+                  fix_noise=a.fix_noise, step_noise=a.step_noise, session_scans=not a.no_session_scans,
                   heading=getattr(a, "heading", "gyro"),
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
                   plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)),
