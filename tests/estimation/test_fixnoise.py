@@ -26,6 +26,22 @@ def test_scale_matches_the_innovations_it_is_fed(true_scale):
     assert np.mean(scales[100:]) == pytest.approx(true_scale, rel=0.2)
 
 
+def test_innovations_smaller_than_calibrated_never_make_a_session_trust_its_fixes_more():
+    """Fixes that agree with the estimate (a tracker following fixes biased together) teach
+    nothing below the calibration: the scale stays at 1, a cold start's at its 0.25 prior."""
+    P, R = np.eye(2) * 4.0, np.eye(2) * 100.0
+    known, cold = FixNoiseScale(), FixNoiseScale(prior=0.25)
+    for _ in range(200):
+        known.observe(np.zeros(2), P, R)
+        cold.observe(np.zeros(2), P, R)
+    assert known.scale == 1.0 and known.total == 0.0  # every sample clipped at 0: pulled to the bound
+    assert cold.scale == 0.25
+    wider = FixNoiseScale()
+    for _ in range(200):
+        wider.observe(np.array([30.0, 30.0]), P, R)
+    assert wider.scale > 5.0  # worse than calibrated is still learned
+
+
 def test_one_gross_outlier_moves_the_scale_by_a_bounded_step():
     P, R = np.eye(2) * 0.5, np.eye(2)
     est = FixNoiseScale()
