@@ -25,9 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
-from client_sim.msft import read_walk, survey_rows, wifi_scans  # noqa: E402
-from client_sim.msft_eval import walk_files  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, holdout_split, make_model  # noqa: E402
 from server.estimation.fingerprint.calibration import (  # noqa: E402
     CovarianceCalibration,
@@ -51,10 +50,7 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=4)
     a = ap.parse_args()
 
-    files = walk_files(Path(a.data_dir))
-    if not files:
-        raise SystemExit(f"error: no walk files under {a.data_dir}")
-    rows = [survey_rows(w, wifi_scans(w, 3.0), device=f"msft-{w.name}") for w in map(read_walk, files)]
+    rows = walk_rows(a.data_dir, 3.0)[1]
     n = len(rows)
 
     def factory():

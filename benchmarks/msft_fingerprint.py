@@ -28,6 +28,17 @@ from client_sim.msft_eval import walk_files  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, UnknownTransmittersError, make_model  # noqa: E402
 
 
+def walk_rows(data_dir: str | Path, max_age_s: float) -> tuple[list, list[list[dict]]]:
+    """The walks under ``data_dir`` and each one's survey rows as ``client_sim msft`` uploads them
+    (WiFi entries older than ``max_age_s`` dropped, placed on the waypoints, ``device`` = the walk);
+    exits naming the folder when it holds no walk."""
+    files = walk_files(Path(data_dir))
+    if not files:
+        raise SystemExit(f"error: no walk files under {data_dir}")
+    walks = [read_walk(f) for f in files]
+    return walks, [survey_rows(w, wifi_scans(w, max_age_s), device=f"msft-{w.name}") for w in walks]
+
+
 def errors_by_walk(rows: list[list[dict]], maps_for, algorithm: str) -> list[np.ndarray]:
     """Each walk's fix errors (m) from a model fitted on ``maps_for(i)``'s walks; one model per
     distinct map (a fold's walks share theirs)."""
@@ -65,11 +76,7 @@ def main() -> None:
     ap.add_argument("--per-walk", action="store_true", help="print each walk's mean error")
     a = ap.parse_args()
 
-    files = walk_files(Path(a.data_dir))
-    if not files:
-        raise SystemExit(f"error: no walk files under {a.data_dir}")
-    walks = [read_walk(f) for f in files]
-    rows = [survey_rows(w, wifi_scans(w, a.max_age), device=f"msft-{w.name}") for w in walks]
+    walks, rows = walk_rows(a.data_dir, a.max_age)
     n = len(walks)
     folds = errors_by_walk(rows, lambda i: [j for j in range(n) if j % a.folds != i % a.folds], a.algorithm)
     print(f"{n} walks, {a.algorithm}, WiFi max age {a.max_age:g} s")
