@@ -1,8 +1,11 @@
-"""Counting the calls of an async function a test wants to see (or not see) reached."""
+"""Counting what a test wants to see (or not see) reached: an async function's calls, the failed
+authentications of a client address."""
 
 from __future__ import annotations
 
 from types import ModuleType
+
+from server.auth import FailureLimiter
 
 
 def count_async_calls(monkeypatch, module: ModuleType, name: str) -> list[int]:
@@ -17,3 +20,10 @@ def count_async_calls(monkeypatch, module: ModuleType, name: str) -> list[int]:
 
     monkeypatch.setattr(module, name, counted)
     return calls
+
+
+def failures_since(limiter: FailureLimiter, since: float, address: str = "127.0.0.1") -> int:
+    """Failed authentications ``limiter`` recorded for ``address`` at or after ``since``
+    (``time.monotonic()``). Counting by time, not by length, keeps earlier tests' failures that
+    leave the sliding minute meanwhile out of the count."""
+    return sum(t >= since for t in limiter._failures.get(address, ()))
