@@ -118,6 +118,10 @@ MIN_SURVIVORS = 100.0
 #: the fixes' and lost the track (docs/msft-evaluation.md, "The fixes' shared error in the PF").
 FIX_BIAS_SHARE = 0.0
 FIX_BIAS_STEPS = 20.0
+#: with the fixes' shared error on, the probability per step that a particle's hypothesis about the
+#: fixes flips (``fix_bias_switch``; 0: every particle takes the share ρ): the session learns whether
+#: its walk's fixes share an error (``ParticleFilterTracker``, "learned per session")
+FIX_BIAS_SWITCH = 0.0
 
 #: the building's grid per straight run as a likelihood of each particle's heading bias
 #: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off), off by default: σ 3° every 8
@@ -478,6 +482,14 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     alone and fixes weigh as N(p, R). A state stored before this (four columns) loads with
     ρ = 0 and goes on as it started.
 
+    **Learned per session** (``fix_bias_switch`` π > 0, column k): one ρ cannot serve both a walk
+    whose fixes are biased together and one whose fixes are not (the first needs ρ, the second is
+    made underconfident by it). So each particle also carries a hypothesis kᵢ ∈ {0, 1} (half of
+    each at the start) and weighs a fix as N(z; p + √(ρkᵢ)·L·u, (1 − ρkᵢ)·R): the fixes' own
+    sequence selects the hypothesis (correlated innovations favour k = 1, independent ones k = 0),
+    and kᵢ flips with probability π per step (a jump between the two models, as in an IMM), so
+    neither hypothesis dies out for good. The weighted mean of ρk is the session's learned share.
+
     **The cloud's spread without a plan** (``kalman_floor`` κ, default 0.5): after an accepted
     fix or a beacon range, the particles get N(0, D), D the κ-share of what a Kalman update of
     the cloud's mean and covariance would keep beyond the reweighted cloud (``_keep_spread``).
@@ -487,7 +499,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     grid (``_observe_grid``), the Gaussian filters' heading reference as a likelihood."""
 
     name = "pf"
-    dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0)
+    dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0), 7 with it learned (``fix_bias_switch`` > 0)
 
     def _configure(
         self,
@@ -500,6 +512,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         scale_walk: float = selfcal.SCALE_WALK,
         fix_bias_share: float = FIX_BIAS_SHARE,
         fix_bias_steps: float = FIX_BIAS_STEPS,
+        fix_bias_switch: float = FIX_BIAS_SWITCH,
         kalman_floor: float = KALMAN_FLOOR,
         grid_sigma_deg: float = GRID_SIGMA_DEG,
         grid_gate_deg: float = selfcal.GRID_GATE_DEG,
@@ -513,22 +526,24 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             raise ValueError("fix_bias_share must be at least 0 and below 1")
         if not fix_bias_steps >= 1.0:
             raise ValueError("fix_bias_steps must be at least 1")
+        if not 0.0 <= fix_bias_switch <= 0.5:
+            raise ValueError("fix_bias_switch must be between 0 and 0.5")
         if not 0.0 <= kalman_floor <= 1.0:
             raise ValueError("kalman_floor must be between 0 and 1")
         super()._configure(walls, seed, **pf_params)
         self.params.update(self._cal, kalman_floor=float(kalman_floor),
                            **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
-        self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps))
+        self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps), float(fix_bias_switch))
 
-    def _set_fix_bias(self, share: float, steps: float) -> None:
-        self.params.update(fix_bias_share=share, fix_bias_steps=steps)
-        self.dim = 6 if share > 0 else 4
+    def _set_fix_bias(self, share: float, steps: float, switch: float) -> None:
+        self.params.update(fix_bias_share=share, fix_bias_steps=steps, fix_bias_switch=switch)
+        self.dim = 4 if share <= 0 else 6 if switch <= 0 else 7
 
     def _has_plan(self) -> bool:
         return len(self.walls) > 0 or self.walkable is not None
 
     def _fix_bias_on(self) -> bool:
-        return self.dim == 6 and self._has_plan()
+        return self.dim >= 6 and self._has_plan()
 
     def predict(self, step: Step) -> None:
         n = len(self.particles)
@@ -539,6 +554,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if self._fix_bias_on():
             phi = math.exp(-1.0 / self.params["fix_bias_steps"])
             P[:, 4:6] = phi * P[:, 4:6] + math.sqrt(1.0 - phi * phi) * rng.standard_normal((n, 2))
+            if self.dim == 7:
+                flip = rng.random(n) < self.params["fix_bias_switch"]
+                P[flip, 6] = 1.0 - P[flip, 6]
         d = P[:, 3] * (step.length_m + step.length_std_m * rng.standard_normal(n))
         h = math.radians(step.heading_deg) + P[:, 2] + math.radians(step.heading_std_deg) * rng.standard_normal(n)
         moved = P.copy(order="F")
@@ -621,10 +639,22 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         else the seed form's."""
         if not (fix.shared_error and self._fix_bias_on()):
             return super()._fix_loglik(fix)
-        rho = self.params["fix_bias_share"]
         R = fix_cov(fix.covariance)
-        bias = math.sqrt(rho) * self.particles[:, 4:6] @ np.linalg.cholesky(R).T
-        return gaussian_loglik(self.particles[:, :2] + bias, fix.mean, (1.0 - rho) * R)
+        if self.dim == 6:
+            rho = self.params["fix_bias_share"]
+            bias = math.sqrt(rho) * self.particles[:, 4:6] @ np.linalg.cholesky(R).T
+            return gaussian_loglik(self.particles[:, :2] + bias, fix.mean, (1.0 - rho) * R)
+        rho = self.params["fix_bias_share"] * self.particles[:, 6]  # (a hypothesis per particle)
+        bias = np.sqrt(rho)[:, None] * (self.particles[:, 4:6] @ np.linalg.cholesky(R).T)
+        return gaussian_loglik(self.particles[:, :2] + bias, fix.mean, R) / (1.0 - rho) - np.log(1.0 - rho)
+
+    @property
+    def fix_bias_learned(self) -> float | None:
+        """The share of a fix's variance the cloud takes as the walk's shared error (the weighted
+        mean of ρkᵢ); None unless it is learned (``fix_bias_switch`` > 0)."""
+        if self.dim != 7:
+            return None
+        return float(self.params["fix_bias_share"] * (self.weights @ self.particles[:, 6]))
 
     def reset(self, mean, cov) -> None:
         n = self.params["n_particles"]
@@ -635,8 +665,10 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             cal = np.column_stack((math.radians(self._cal["bias0_std_deg"]) * self.rng.standard_normal(n),
                                    np.clip(1.0 + self._cal["scale0_std"] * self.rng.standard_normal(n),
                                            *selfcal.SCALE_RANGE)))
-            if self.dim == 6:
+            if self.dim >= 6:
                 cal = np.column_stack((cal, self.rng.standard_normal((n, 2))))
+            if self.dim == 7:
+                cal = np.column_stack((cal, (np.arange(n) % 2).astype(float)))
         else:  # keep the calibration the particles learned (their weights carry over to it)
             cal = old[systematic_resample(self.weights, float(self.rng.random()), n), 2:]
         self.particles = np.column_stack((xy, cal))
@@ -654,8 +686,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         return {**super()._state(), "dim": self.dim, **self._run_state()}
 
     def _load_state(self, state: dict) -> None:
-        if state.get("dim", 4) != self.dim:  # stored before the fixes' shared error: go on without it
-            self._set_fix_bias(0.0, self.params["fix_bias_steps"])
+        stored = state.get("dim", 4)
+        if stored != self.dim:  # stored before the shared error (4) or before it was learned (6): go on as it started
+            self._set_fix_bias(self.params["fix_bias_share"] if stored == 6 else 0.0, self.params["fix_bias_steps"], 0.0)
         super()._load_state(state)
         self._load_run(state)
 

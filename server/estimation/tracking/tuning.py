@@ -52,6 +52,8 @@ TUNABLE: dict[str, Tunable] = {
     "bias_walk_deg": Tunable(0.0, 45.0, "° heading-bias random walk per step"),
     "fix_bias_share": Tunable(0.0, 0.95, "share of a fix's variance shared along the walk (pf, with a plan)"),
     "fix_bias_steps": Tunable(1.0, 10_000.0, "steps, correlation length of the fixes' shared error (pf)"),
+    "fix_bias_switch": Tunable(0.0, 0.5, "probability per step that a particle's hypothesis of the fixes' shared "
+                               "error flips (pf; 0: the share is not learned)"),
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
                             "after a fix or beacon range (pf, no plan)"),
     "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, per straight run "
