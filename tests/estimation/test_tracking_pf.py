@@ -378,6 +378,80 @@ def test_pf_state_stored_before_the_shared_error_goes_on_without_it():
     assert tracker_from_dict(back.to_dict()).particles.shape == (1000, 4)
 
 
+# -- the fixes' shared error learned per session (fix_bias_switch) ------------------------------
+WIDE_CORRIDOR = [[-50.0, -5.0, 500.0, -5.0], [-50.0, 5.0, 500.0, 5.0]]
+
+
+def _learned_share(seed: int, correlation: float) -> float:
+    """The learned share, averaged over the last 200 of 300 steps east along a 10 m corridor, the
+    compass 2° off, a fix every third step with errors of σ 3 m: independent ones (``correlation``
+    0) or a Gauss–Markov error that the walk's fixes share (per fix ``correlation``)."""
+    t = make_tracker("pf", [0, 0], np.eye(2), walls=WIDE_CORRIDOR, seed=seed, fix_bias_share=0.35,
+                     fix_bias_switch=0.01)
+    rng = np.random.default_rng(seed)
+    bias, learned = np.zeros(2), []
+    for k in range(300):
+        t.predict(Step(k * 0.5, 0.7, 92.0))
+        if k % 3 == 0:
+            bias = correlation * bias + math.sqrt(1 - correlation**2) * rng.normal(0, 3, 2)
+            z = np.array([0.7 * (k + 1), 0.0]) + bias
+            t.update(Fix(float(z[0]), float(z[1]), 0, np.eye(2) * 9.0))
+        learned.append(t.fix_bias_learned)
+    return float(np.mean(learned[100:]))
+
+
+def test_pf_learns_whether_its_fixes_share_an_error():
+    """Half the particles start on each hypothesis (learned share ρ/2 = 0.175); independent fixes
+    take it below that, fixes biased together near ρ (the flips keep it from reaching either end)."""
+    independent = np.mean([_learned_share(s, 0.0) for s in range(3)])
+    together = np.mean([_learned_share(s, 0.95) for s in range(3)])
+    assert independent < 0.16 and together > 0.28
+
+
+def test_pf_fix_likelihood_with_the_learned_share_is_hand_computed():
+    """A particle on hypothesis k weighs a fix as N(z; p + √(ρk)·L·u, (1 − ρk)·R)."""
+    rho = 0.4
+    t = make_tracker("pf", [10.0, 0.0], np.diag([4.0, 0.2]), walls=CORRIDOR, seed=4, fix_bias_share=rho,
+                     fix_bias_switch=0.01, resample_threshold=0.0)
+    assert t.particles.shape == (1000, 7) and set(t.particles[:, 6]) == {0.0, 1.0}
+    assert t.fix_bias_learned == pytest.approx(rho / 2)
+    before = t.particles.copy()
+    R = np.array([[9.0, 1.0], [1.0, 4.0]])
+    z = np.array([11.0, 0.3])
+    t.update(Fix(float(z[0]), float(z[1]), 0, R))
+    share = rho * before[:, 6]
+    d = before[:, :2] + np.sqrt(share)[:, None] * (before[:, 4:6] @ np.linalg.cholesky(R).T) - z
+    lik = np.exp(-0.5 * np.einsum("ij,jk,ik->i", d, np.linalg.inv(R), d) / (1 - share)) / (1 - share)
+    exact = lik / lik.sum()
+    kept = lik / lik.max() > 2.0**-15.9
+    np.testing.assert_allclose(t.weights[kept], exact[kept], rtol=0.045)
+    np.testing.assert_allclose(t.fix_bias_learned, rho * (exact @ before[:, 6]), atol=0.005)
+
+
+def test_pf_with_the_learned_share_restores_exactly_and_a_fixed_share_state_loads():
+    """Seven columns survive a restore exactly; a state stored with a fixed share (six columns)
+    loads under parameters that ask for the learned one and goes on with the fixed share."""
+    from server.estimation.tracking import tracker_from_dict
+
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2), walls=CORRIDOR, seed=5, fix_bias_share=0.3, fix_bias_switch=0.05)
+    for tr_steps in range(3):
+        t.predict(Step(tr_steps, 0.7, 90.0))
+    t.update(Fix(1.5, 0.2, 0, np.eye(2) * 4.0))
+    back = tracker_from_dict(t.to_dict())
+    fixed = make_tracker("pf", [0.0, 0.0], np.eye(2), walls=CORRIDOR, seed=5, fix_bias_share=0.3)
+    fixed.predict(Step(1.0, 0.7, 90.0))
+    data = fixed.to_dict()
+    data["params"]["fix_bias_switch"] = 0.05
+    old = tracker_from_dict(data)
+    assert old.particles.shape == (1000, 6) and old.params["fix_bias_switch"] == 0.0 and old.fix_bias_learned is None
+    for a, b in ((t, back), (fixed, old)):
+        for tr in (a, b):
+            tr.predict(Step(5.0, 0.7, 90.0))
+            tr.update(Fix(2.0, 0.0, 0, np.eye(2) * 4.0))
+        np.testing.assert_array_equal(b.particles, a.particles)
+        np.testing.assert_array_equal(b.weights, a.weights)
+
+
 # -- the cloud kept as wide as a Kalman update (kalman_floor) -----------------------------------
 def _far_fix(kappa: float, seed: int, walls=None):
     """A pf (no resampling) from N(0, 4·I) given a fix at (6, 0) with R = I: the Bayesian posterior
