@@ -412,13 +412,28 @@ class Options:
     filter_params: dict[str, dict[str, float]] | None = None
 
 
+def walks_with_a_span(files: list[Path], role: str, progress=print) -> list[Walk]:
+    """The walks of ``files`` with at least two waypoints: a walk with fewer has no time span to
+    place its scans in or to score, and no segment to calibrate on; each left out is said."""
+    walks = []
+    for f in files:
+        w = read_walk(f)
+        if len(w.waypoints) < 2:
+            progress(f"{role} walk {w.name} left out: {len(w.waypoints)} waypoint(s), at least 2 are needed")
+        else:
+            walks.append(w)
+    if files and not walks:
+        raise CliError(f"no {role} walk has two waypoints", EXIT_USAGE)
+    return walks
+
+
 async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, map_files: list[Path],
                    test_files: list[Path], opt: Options, progress=print, transport=None) -> dict:
     ble = "ble" in opt.kinds
-    map_walks = [read_walk(f) for f in map_files]
+    map_walks = walks_with_a_span(map_files, "map", progress)
     pdr = pdr_config(opt.heading, map_walks)
     maps = [prepare(w, pdr, opt.max_age_s, ble) for w in map_walks]
-    tests = [prepare(read_walk(f), pdr, opt.max_age_s, ble) for f in test_files]
+    tests = [prepare(w, pdr, opt.max_age_s, ble) for w in walks_with_a_span(test_files, "test", progress)]
     site_cal = site_calibration(maps) | {"heading": pdr.heading, "field_ut": pdr.field_ut, "dip_deg": pdr.dip_deg}
     progress(f"site calibration from {site_cal['walks']} map walks ({pdr.heading} heading, field "
              f"{pdr.field_ut} µT, dip {pdr.dip_deg}°): heading offset "

@@ -264,3 +264,20 @@ def test_errors_against_scores_nees_when_the_estimate_has_a_covariance():
     assert "nees" not in rows[1]
     assert consistency(rows) == {"nees_mean": 4.0, "nees_p50": 4.0}
     assert consistency(rows[1:]) == {}
+
+
+def test_walks_without_a_span_are_left_out_and_said(tmp_path):
+    """A walk with one waypoint has no span to score and no segment to calibrate on: it is left
+    out with a message (it used to fail later in the calibration); none left at all is a usage error."""
+    from client_sim.msft_eval import walks_with_a_span
+
+    lines = FIXTURE.read_text().splitlines(keepends=True)
+    waypoint_lines = [i for i, line in enumerate(lines) if "\tTYPE_WAYPOINT\t" in line]
+    one = tmp_path / "one_waypoint.txt"
+    one.write_text("".join(line for i, line in enumerate(lines) if i not in waypoint_lines[1:]))
+    said: list[str] = []
+    kept = walks_with_a_span([FIXTURE, one], "test", said.append)
+    assert [w.name for w in kept] == ["msft_synthetic_walk"]
+    assert len(said) == 1 and "one_waypoint" in said[0] and "1 waypoint" in said[0]
+    with pytest.raises(CliError, match="no map walk has two waypoints"):
+        walks_with_a_span([one], "map", said.append)
