@@ -16,7 +16,8 @@ stored data: every session has exactly one stored answer per posted seq and exac
 3 track estimates per batch (+1 initial) — no lost and no doubled batches.
 
 First, closed loop from the same client: the server's capacity for batches, and the
-baseline, its capacity for its cheapest database-backed request (``GET /healthz``); the
+baseline, its capacity for its cheapest database-backed request (``GET /healthz``), the two
+in turn for ``--rounds`` rounds (default 3; the medians are printed with their range); the
 ratio says how close batches come to what this machine's HTTP stack can carry at all
 and, unlike either figure, hardly moves with whatever else the machine is doing. The CPU
 time per batch (the server's processes, and on PostgreSQL the database's too) gives the
@@ -31,6 +32,7 @@ import math
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import aiohttp
@@ -125,20 +127,36 @@ async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, second
     return sid, ok
 
 
+@dataclass(frozen=True)
+class Round:
+    """One round of the closed-loop capacity measurement."""
+
+    healthz_per_s: float
+    batches_per_s: float
+    #: server CPU ms per request (healthz, batch); None where /proc is not readable
+    cpu_ms: tuple[float, float] | None
+    #: PostgreSQL's CPU ms per batch (None on SQLite or without /proc)
+    db_cpu_ms: float | None
+
+    @property
+    def ratio(self) -> float:
+        return self.batches_per_s / self.healthz_per_s
+
+
 async def capacities(base: str, server_pid: int, site_id: int, synth, filter: str, device_key: str,
-                     requests: int = 3000, concurrency: int = 64) -> dict:
-    """Closed loop, same client and concurrency: ``GET /healthz`` (one ``SELECT 1``), then
-    batches from ``concurrency`` phones each posting its next batch once the last is answered.
-    Each with the server's CPU time per request."""
+                     rounds: int = 3, requests: int = 3000, concurrency: int = 64) -> tuple[list[Round], list]:
+    """Closed loop, same client and concurrency, ``rounds`` times in turn: ``GET /healthz`` (one
+    ``SELECT 1``), then batches from ``concurrency`` phones each posting its next batch once the
+    last is answered (the same sessions go on from round to round). Each with the server's CPU
+    time per request. Alternating the two in rounds puts load that comes and goes on the machine
+    on both alike; the spread over rounds says how far one figure can be trusted."""
+    out: list[Round] = []
     async with client(base, device_key, concurrency) as http:
         await closed_loop(http, lambda i: ("GET", "/healthz", None), 200, concurrency)  # warm up
-        cpu0 = cpu_seconds(server_pid)
-        elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
-        cpu1 = cpu_seconds(server_pid)
-        healthz_per_s = requests / elapsed
         walks = [walk(synth, i) for i in range(concurrency)]
         sessions = [await open_session(http, site_id, filter, next(w)) for w in walks]
         per_phone = requests // concurrency
+        n = per_phone * concurrency
 
         async def post_all(sid: str, batches) -> None:
             for _ in range(per_phone):
@@ -146,16 +164,21 @@ async def capacities(base: str, server_pid: int, site_id: int, synth, filter: st
                     await r.read()
                     r.raise_for_status()
 
-        cpu2, db2 = cpu_seconds(server_pid), database_cpu_seconds()
-        began = time.perf_counter()
-        await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks, strict=True)))
-        batches_per_s = per_phone * concurrency / (time.perf_counter() - began)
-        cpu3, db3 = cpu_seconds(server_pid), database_cpu_seconds()
-    n = per_phone * concurrency
-    per_request = None if cpu0 is None else ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / n * 1e3)
-    db_ms = None if db2 is None or db3 is None else (db3 - db2) / n * 1e3
-    return {"healthz_per_s": healthz_per_s, "batches_per_s": batches_per_s, "cpu_ms": per_request,
-            "db_cpu_ms": db_ms, "sessions": [(sid, per_phone) for sid in sessions]}
+        for _ in range(rounds):
+            cpu0 = cpu_seconds(server_pid)
+            elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
+            cpu1 = cpu_seconds(server_pid)
+            cpu2, db2 = cpu_seconds(server_pid), database_cpu_seconds()
+            began = time.perf_counter()
+            await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks, strict=True)))
+            batches_per_s = n / (time.perf_counter() - began)
+            cpu3, db3 = cpu_seconds(server_pid), database_cpu_seconds()
+            cpu_ms = None
+            if cpu0 is not None and cpu1 is not None and cpu2 is not None and cpu3 is not None:
+                cpu_ms = ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / n * 1e3)
+            db_ms = None if db2 is None or db3 is None else (db3 - db2) / n * 1e3
+            out.append(Round(requests / elapsed, batches_per_s, cpu_ms, db_ms))
+    return out, [(sid, per_phone * rounds) for sid in sessions]
 
 
 async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter: str, device_key: str):
@@ -188,6 +211,33 @@ def check_store(database_url: str, sessions: list[tuple[str, int]]) -> list[str]
     return problems
 
 
+def _spread(values: list[float], fmt: str) -> str:
+    """The median, and the range over rounds when there are several."""
+    med = format(float(np.median(values)), fmt)
+    return med if len(values) == 1 else f"{med} (rounds {format(min(values), fmt)}–{format(max(values), fmt)})"
+
+
+def print_capacity(rounds: list[Round], on_postgres: bool) -> None:
+    """The closed-loop figures: medians over the rounds, with their range."""
+    print(f"capacity, closed loop, 64 phones, {len(rounds)} round(s): "
+          f"{_spread([r.batches_per_s for r in rounds], '.0f')} batches/s; baseline GET /healthz from the same "
+          f"client: {_spread([r.healthz_per_s for r in rounds], '.0f')} requests/s; "
+          f"ratio {_spread([r.ratio for r in rounds], '.2f')}")
+    cpu = [r.cpu_ms for r in rounds if r.cpu_ms is not None]
+    if not cpu:
+        return
+    healthz_ms, batch_ms = [c[0] for c in cpu], [c[1] for c in cpu]
+    print(f"server CPU per request: batch {_spread(batch_ms, '.2f')} ms, healthz {_spread(healthz_ms, '.2f')} ms; "
+          f"ratio {_spread([b / h for b, h in zip(batch_ms, healthz_ms, strict=True)], '.2f')}")
+    db = [r.db_cpu_ms for r in rounds if r.db_cpu_ms is not None] if on_postgres else [0.0]  # SQLite's CPU is the server's
+    if on_postgres and db:
+        print(f"PostgreSQL CPU per batch: {_spread(db, '.2f')} ms (every postgres process on this machine)")
+    if db:
+        total = float(np.median(batch_ms)) + float(np.median(db))
+        print(f"per core: {1000.0 / total:.0f} phones at one batch a second (server + database CPU "
+              f"{total:.2f} ms per batch, medians); 1,000 phones need {total:.1f} cores")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--phones", type=int, default=200)
@@ -196,6 +246,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="server processes")
     parser.add_argument("--database-url", help="default: a new SQLite file")
     parser.add_argument("--port", type=int, default=8793)
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="closed-loop capacity rounds, healthz and batches in turn (the median is the figure)")
     parser.add_argument("--stored-key", action="store_true",
                         help="phones use a key created as `python -m server keys create` makes one (looked up in "
                              "the database on every request) instead of one from LOCALIZER_DEVICE_KEYS")
@@ -214,28 +266,15 @@ def main() -> None:
                 db = Database(url)
                 device_key = create_key(db, "bench phones", "device")[1]
                 db.dispose()
-            cap = asyncio.run(capacities(base, server.pid, site_id, synth, args.filter, device_key))
+            rounds, cap_sessions = asyncio.run(
+                capacities(base, server.pid, site_id, synth, args.filter, device_key, max(1, args.rounds)))
             sessions, lat, failures, elapsed = asyncio.run(
                 run(base, site_id, synth, args.phones, args.seconds, args.filter, device_key))
         finally:
             stop_server(server)
         lat_ms = np.array(lat) * 1000
         n = len(lat_ms)
-        print(f"capacity, closed loop, 64 phones: {cap['batches_per_s']:.0f} batches/s; baseline GET /healthz "
-              f"from the same client: {cap['healthz_per_s']:.0f} requests/s; ratio "
-              f"{cap['batches_per_s'] / cap['healthz_per_s']:.2f}")
-        if cap["cpu_ms"]:
-            healthz_ms, batch_ms = cap["cpu_ms"]
-            print(f"server CPU per request: batch {batch_ms:.2f} ms, healthz {healthz_ms:.2f} ms; "
-                  f"ratio {batch_ms / healthz_ms:.2f}")
-            on_postgres = url.startswith("postgresql")
-            db_ms = cap["db_cpu_ms"] if on_postgres else 0.0  # SQLite's CPU is the server's
-            if on_postgres and db_ms is not None:
-                print(f"PostgreSQL CPU per batch: {db_ms:.2f} ms (every postgres process on this machine)")
-            if db_ms is not None:
-                total = batch_ms + db_ms
-                print(f"per core: {1000.0 / total:.0f} phones at one batch a second (server + database CPU "
-                      f"{total:.2f} ms per batch); 1,000 phones need {total:.1f} cores")
+        print_capacity(rounds, url.startswith("postgresql"))
         print(f"{args.phones} phones x {args.seconds} batches ({args.filter}, {args.workers} worker(s), "
               f"{url.split(':')[0]}{', stored key' if args.stored_key else ''}): "
               f"{n} batches answered in {elapsed:.1f} s = {n / elapsed:.0f} batches/s "
@@ -246,7 +285,7 @@ def main() -> None:
         print(f"failed or retried posts: {len(failures)}")
         for f in failures[:5]:
             print("  ", f)
-        problems = check_store(url, sessions + cap["sessions"])
+        problems = check_store(url, sessions + cap_sessions)
         print(f"stored data: {'OK, no lost or doubled batches' if not problems else f'{len(problems)} sessions wrong'}")
         for p in problems[:5]:
             print("  ", p)
