@@ -1,18 +1,22 @@
 """In-process service time of a tracking batch and of a locate, through the real app.
 
-Run from the repository root:  python benchmarks/service_time.py [--batches N] [--filter skpf]
+Run from the repository root:
+    python benchmarks/service_time.py [--batches N] [--filter skpf] [--database-url URL] [--profile FILE]
 
 The app runs in this process (Starlette's TestClient: no sockets, no client load
-generator) on a fresh SQLite database with a small synthetic site and a KNN model. It
+generator) on a fresh SQLite database (or ``--database-url``) with a small synthetic site and
+a KNN model. It
 prints µs per request for ``GET /healthz`` (the baseline: the HTTP stack and key check
 alone), a tracking batch (5 steps and 1 scan) and a ``locate``, each as a ratio against
 the baseline measured in the same run, then the same batch and locate as direct calls of
-the session and positioning services (no HTTP: the service time itself).
+the session and positioning services (no HTTP: the service time itself). ``--profile``
+writes a cProfile of as many more service batches (``python -m pstats FILE``).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import math
 import statistics
 import sys
@@ -51,14 +55,16 @@ def main() -> None:
     ap.add_argument("--batches", type=int, default=400)
     ap.add_argument("--locates", type=int, default=400)
     ap.add_argument("--filter", default="skpf")
+    ap.add_argument("--database-url", help="default: a new SQLite file (a PostgreSQL database may be used again)")
+    ap.add_argument("--profile", metavar="FILE", help="also write a cProfile of the service batches to FILE")
     args = ap.parse_args()
 
-    url = f"sqlite:///{tempfile.mkdtemp()}/bench.db"
+    url = args.database_url or f"sqlite:///{tempfile.mkdtemp()}/bench.db"
     migrate.upgrade(url)
     settings = Settings(database_url=url, admin_keys=["a"], device_keys=["d"], embedded_worker=True, training_poll_s=0.2)
     with TestClient(create_app(settings)) as client:
         admin, device = {"Authorization": "Bearer a"}, {"Authorization": "Bearer d"}
-        site = client.post("/api/v1/sites", json={"name": "bench"}, headers=admin).json()["id"]
+        site = client.post("/api/v1/sites", json={"name": f"bench {time.time_ns()}"}, headers=admin).json()["id"]
         grid = [(float(x), float(y)) for x in range(0, 31, 2) for y in range(0, 21, 2)]
         survey = [{"x": x, "y": y, "floor": 0, "rss": rss_at(x, y)} for x, y in grid]
         r = client.post(f"/api/v1/sites/{site}/surveys", json={"fingerprints": survey}, headers=admin)
@@ -108,6 +114,9 @@ def main() -> None:
         batch_us = _per_call_us(batch, args.batches)
         locate_us = _per_call_us(locate, args.locates)
         service_batch_us = _per_call_us(service_batch, args.batches)
+        if args.profile:
+            cProfile.runctx("for i in range(args.batches): service_batch(args.batches + i)", globals(),
+                            {"service_batch": service_batch, "args": args}, args.profile)
         service_locate_us = _per_call_us(service_locate, args.locates)
 
     base = statistics.median(health_us)

@@ -86,7 +86,7 @@ class SVMModel(FingerprintModel):
             self.svr_[grp] = (rx, ry, mu, sd)
         self.search_time_s_ = time.perf_counter() - t0
 
-    def _subsample(self, n, rng, strat=None):
+    def _subsample(self, n, rng):
         if n <= self.cv_rows:
             return np.arange(n)
         return np.sort(rng.choice(n, self.cv_rows, replace=False))
