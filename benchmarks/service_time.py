@@ -115,8 +115,10 @@ def main() -> None:
         locate_us = _per_call_us(locate, args.locates)
         service_batch_us = _per_call_us(service_batch, args.batches)
         if args.profile:
-            cProfile.runctx("for i in range(args.batches): service_batch(args.batches + i)", globals(),
-                            {"service_batch": service_batch, "args": args}, args.profile)
+            with cProfile.Profile() as profile:
+                for i in range(args.batches):
+                    service_batch(args.batches + i)
+            profile.dump_stats(args.profile)
         service_locate_us = _per_call_us(service_locate, args.locates)
 
     base = statistics.median(health_us)

@@ -167,16 +167,15 @@ async def capacities(base: str, server_pid: int, site_id: int, synth, filter: st
         for _ in range(rounds):
             cpu0 = cpu_seconds(server_pid)
             elapsed, _ = await closed_loop(http, lambda i: ("GET", "/healthz", None), requests, concurrency)
-            cpu1 = cpu_seconds(server_pid)
-            cpu2, db2 = cpu_seconds(server_pid), database_cpu_seconds()
+            cpu1, db1 = cpu_seconds(server_pid), database_cpu_seconds()  # healthz's end is the batches' start
             began = time.perf_counter()
             await asyncio.gather(*(post_all(sid, w) for sid, w in zip(sessions, walks, strict=True)))
             batches_per_s = n / (time.perf_counter() - began)
-            cpu3, db3 = cpu_seconds(server_pid), database_cpu_seconds()
+            cpu2, db2 = cpu_seconds(server_pid), database_cpu_seconds()
             cpu_ms = None
-            if cpu0 is not None and cpu1 is not None and cpu2 is not None and cpu3 is not None:
-                cpu_ms = ((cpu1 - cpu0) / requests * 1e3, (cpu3 - cpu2) / n * 1e3)
-            db_ms = None if db2 is None or db3 is None else (db3 - db2) / n * 1e3
+            if cpu0 is not None and cpu1 is not None and cpu2 is not None:
+                cpu_ms = ((cpu1 - cpu0) / requests * 1e3, (cpu2 - cpu1) / n * 1e3)
+            db_ms = None if db1 is None or db2 is None else (db2 - db1) / n * 1e3
             out.append(Round(requests / elapsed, batches_per_s, cpu_ms, db_ms))
     return out, [(sid, per_phone * rounds) for sid in sessions]
 
