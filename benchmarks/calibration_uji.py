@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.fingerprint_choice import CHOOSE, REPORT, user_ids
 from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.calibration import IDENTITY, clipped_mean, fit_calibration, nis
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
@@ -36,8 +36,7 @@ def main(argv=None) -> int:
     ap.add_argument("--algorithms", default="knn,wknn", help="comma-separated (default %(default)s)")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(str(Path(a.data) / "trainingData.csv"))
-    assert fs.user is not None, "UJIIndoorLoc rows carry USERID"
-    user = fs.user.astype(int)
+    user = user_ids(fs)
     train = fs.subset(~np.isin(user, list(CHOOSE | REPORT)))
     choose = _sample(fs.subset(np.isin(user, list(CHOOSE))), a.sample)
     report = _sample(fs.subset(np.isin(user, list(REPORT))), a.sample)

@@ -32,6 +32,13 @@ DATA = UJIINDOORLOC / "trainingData.csv"
 CHOOSE = {2, 6, 7, 14}
 REPORT = {4, 8, 10, 13, 17, 18}
 
+
+def user_ids(fs) -> np.ndarray:
+    """Each row's USERID: the choosing (CHOOSE) and reporting (REPORT) splits go by user."""
+    if fs.user is None:
+        raise SystemExit("these rows carry no USERID: the choosing/reporting split needs UJIIndoorLoc's")
+    return fs.user.astype(int)
+
 CANDIDATES: dict[str, tuple[str, dict]] = {
     "knn (k=3, 1/d weights: the default)": ("knn", {}),
     "knn, uniform weights": ("knn", {"weights": "uniform"}),
@@ -116,7 +123,7 @@ def main(argv=None) -> int:
                             "wknn positive sorensen;wknn powed sorensen;knn (k=3, 1/d weights: the default)")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(DATA)
-    user = fs.user.astype(int)
+    user = user_ids(fs)
     stages = ["choose", "report"] if a.stage == "both" else [a.stage]
     for stage in stages:
         held = CHOOSE if stage == "choose" else REPORT

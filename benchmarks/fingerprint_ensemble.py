@@ -48,7 +48,7 @@ import time
 
 import numpy as np
 
-from benchmarks.fingerprint_choice import CHOOSE, DATA, REPORT, baseline
+from benchmarks.fingerprint_choice import CHOOSE, DATA, REPORT, baseline, user_ids
 from server.estimation.fingerprint.base import stratified_rows
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
 from server.estimation.fingerprint.registry import make_model
@@ -200,9 +200,8 @@ def main(argv=None) -> int:
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--cache", default="", help="npz file: member answers stored / reused")
     a = ap.parse_args(argv)
-    data = a.data if os.path.exists(a.data) else "/work/shared/data/ujiindoorloc/trainingData.csv"
-    fs = read_ujiindoorloc(data)
-    user = fs.user.astype(int)
+    fs = read_ujiindoorloc(str(a.data))
+    user = user_ids(fs)
     held = CHOOSE if a.stage == "choose" else REPORT
     out_train = CHOOSE | REPORT if a.stage == "choose" else REPORT
     train = fs.subset(~np.isin(user, list(out_train)))

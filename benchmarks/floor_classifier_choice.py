@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.fingerprint_choice import CHOOSE, REPORT, user_ids
 from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.artifact import to_bytes
 from server.estimation.fingerprint.base import TrainingData
@@ -171,7 +171,7 @@ def line(r: dict) -> str:
 
 
 def splits(fs: FingerprintSet, stage: str):
-    user = fs.user.astype(int)
+    user = user_ids(fs)
     if stage == "choose":
         return (fs.subset(~np.isin(user, list(CHOOSE | REPORT))), fs.subset(np.isin(user, list(CHOOSE))),
                 f"users outside {sorted(CHOOSE | REPORT)}", f"users {sorted(CHOOSE)}")
@@ -210,7 +210,7 @@ def scale(fs: FingerprintSet, names: list[str]) -> None:
 def leave_one_user_out(fs: FingerprintSet, names: list[str]) -> None:
     """Each user outside CHOOSE ∪ REPORT held out in turn, trained on the others outside
     CHOOSE ∪ REPORT; hits pooled over the folds (no costs)."""
-    user = fs.user.astype(int)
+    user = user_ids(fs)
     pool = np.unique(user[~np.isin(user, list(CHOOSE | REPORT))])
     folds = []
     for u in pool:
@@ -240,7 +240,6 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="comma-separated substrings of candidate names")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(str(a.data / "trainingData.csv"))
-    assert fs.user is not None, "UJIIndoorLoc rows carry USERID"
     names = [n for n in CANDIDATES if not a.only or n == BASELINE or any(o in n for o in a.only.split(","))]
     stages = ["choose", "report", "phones", "lou", "scale"] if a.stage == "all" else [a.stage]
     for stage in stages:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.fingerprint_choice import CHOOSE, REPORT
+from benchmarks.fingerprint_choice import CHOOSE, REPORT, user_ids
 from benchmarks.shared_data import UJIINDOORLOC
 from server.estimation.fingerprint.base import FLOOR_CLASSIFIER_ROWS
 from server.estimation.fingerprint.loaders import read_ujiindoorloc
@@ -47,8 +47,7 @@ def main(argv=None) -> int:
     ap.add_argument("--stage", default="both", choices=["choose", "report", "both"], help="default %(default)s")
     a = ap.parse_args(argv)
     fs = read_ujiindoorloc(str(a.data / "trainingData.csv"))
-    assert fs.user is not None, "UJIIndoorLoc rows carry USERID"
-    user = fs.user.astype(int)
+    user = user_ids(fs)
     head = ("| cap | floor hit (building and floor) | building hit | knn mean m | fit s | support vectors |\n"
             "|---|---|---|---|---|---|")
     if a.stage in ("choose", "both"):

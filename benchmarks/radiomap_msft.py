@@ -30,7 +30,7 @@ from client_sim.msft_eval import walk_files  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 
 FOLDS = 4
-DEFAULT_MODELS = [("knn", {}), ("wknn", {}), ("rmap", {})]
+DEFAULT_MODELS: list[tuple[str, dict]] = [("knn", {}), ("wknn", {}), ("rmap", {})]
 
 
 def walks(data_dir: Path) -> list[list[dict]]:

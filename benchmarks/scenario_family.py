@@ -115,7 +115,7 @@ def draw(split: str, index: int) -> Scenario:
     vals: dict = {}
     for k, (lo, hi) in RANGES[split].items():
         if isinstance(lo, int):
-            vals[k] = int(rng.integers(lo, hi + 1))
+            vals[k] = int(rng.integers(lo, int(hi) + 1))
         else:
             v = float(rng.uniform(lo, hi))
             vals[k] = v * (1 if k not in SIGNED or rng.random() < 0.5 else -1)
@@ -339,6 +339,7 @@ def pdr_errors(w: Walk) -> list[float]:
 def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict:
     world = World(sc)
     w = walk(world)
+    fixes: GaussianFixes | ModelFixes
     if fix_kind == "gaussian":
         fixes = GaussianFixes(w, sc.gauss_fix_std_m, sc.seed + 4)
         fp = [float(np.hypot(*(fixes.by_t[s.t] - p))) for s, p in zip(w.scans, w.scan_truth, strict=True)]

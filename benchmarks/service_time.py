@@ -62,7 +62,8 @@ def main() -> None:
     url = args.database_url or f"sqlite:///{tempfile.mkdtemp()}/bench.db"
     migrate.upgrade(url)
     settings = Settings(database_url=url, admin_keys=["a"], device_keys=["d"], embedded_worker=True, training_poll_s=0.2)
-    with TestClient(create_app(settings)) as client:
+    app = create_app(settings)
+    with TestClient(app) as client:
         admin, device = {"Authorization": "Bearer a"}, {"Authorization": "Bearer d"}
         site = client.post("/api/v1/sites", json={"name": f"bench {time.time_ns()}"}, headers=admin).json()["id"]
         grid = [(float(x), float(y)) for x in range(0, 31, 2) for y in range(0, 21, 2)]
@@ -96,8 +97,8 @@ def main() -> None:
         def health(_: int) -> None:
             assert client.get("/healthz", headers=device).status_code == 200
 
-        sessions, positioning = client.app.state.sessions, client.app.state.positioning
-        principal = client.app.state.auth.bootstrap("d")
+        sessions, positioning = app.state.sessions, app.state.positioning
+        principal = app.state.auth.bootstrap("d")
 
         def service_batch(i: int) -> None:
             """The session service alone: read, apply_batch, compare-and-set write (no HTTP)."""

@@ -98,7 +98,7 @@ async def open_session(http: aiohttp.ClientSession, site_id: int, filter: str, i
 
 
 async def phone(http: aiohttp.ClientSession, site_id: int, synth, i: int, seconds: int, filter: str,
-                start_at: float, latencies: list, failures: list) -> tuple[str, int]:
+                start_at: float, latencies: list[float], failures: list[str]) -> tuple[str, int]:
     """Posts one batch a second from ``start_at``; a failed post is retried with the same seq."""
     batches = walk(synth, 10_000 + i)
     sid = await open_session(http, site_id, filter, next(batches))
@@ -184,7 +184,8 @@ async def run(base: str, site_id: int, synth, phones: int, seconds: int, filter:
     async with client(base, device_key, phones) as http:
         loop = asyncio.get_running_loop()
         t0 = loop.time() + 2.0
-        latencies, failures = [], []
+        latencies: list[float] = []
+        failures: list[str] = []
         began = time.perf_counter() + 2.0  # when the first batch is due
         sessions = await asyncio.gather(*[
             phone(http, site_id, synth, i, seconds, filter, t0 + i / phones, latencies, failures)
@@ -199,9 +200,11 @@ def check_store(database_url: str, sessions: list[tuple[str, int]]) -> list[str]
     engine = create_engine(database_url)
     problems = []
     with engine.connect() as conn:
-        answers = dict(conn.execute(text("SELECT session_id, count(*) FROM session_batches GROUP BY session_id")).all())
-        estimates = dict(conn.execute(text("SELECT session_id, count(*) FROM track_estimates GROUP BY session_id")).all())
-        last = dict(conn.execute(text("SELECT id, last_seq FROM tracking_sessions")).all())
+        answers: dict[str, int] = dict(conn.execute(text(
+            "SELECT session_id, count(*) FROM session_batches GROUP BY session_id")).all())
+        estimates: dict[str, int] = dict(conn.execute(text(
+            "SELECT session_id, count(*) FROM track_estimates GROUP BY session_id")).all())
+        last: dict[str, int] = dict(conn.execute(text("SELECT id, last_seq FROM tracking_sessions")).all())
     engine.dispose()
     for sid, n in sessions:
         if answers.get(sid, 0) != n or estimates.get(sid, 0) != 1 + 3 * n:

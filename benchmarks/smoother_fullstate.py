@@ -56,6 +56,7 @@ def main() -> int:
             sc = sf.draw(a.split, i)
             world = sf.World(sc)
             w = sf.walk(world)
+            fixes: sf.GaussianFixes | sf.ModelFixes
             if kind == "gaussian":
                 fixes, site = sf.GaussianFixes(w, sc.gauss_fix_std_m, sc.seed + 4), sf.SiteMap()
             else:

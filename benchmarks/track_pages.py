@@ -32,7 +32,10 @@ def fill(database_url: str, session_id: str, n: int, per_batch: int = 20) -> Non
 
     db = Database(database_url)
     with db.transaction() as s:
-        start = s.get(TrackingSession, session_id).track_length
+        stored = s.get(TrackingSession, session_id)
+        if stored is None:
+            raise SystemExit(f"no session {session_id}")
+        start = stored.track_length
         rows, batches = [], []
         for i in range(n):
             seq = i // per_batch

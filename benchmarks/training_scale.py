@@ -55,10 +55,9 @@ def _records(data: Path, n: int, seed: int = 0) -> list:
         values = row[heard] if i < len(fs) else np.clip(np.round(row[heard] + rng.normal(0, 2.0, len(heard))), -110, 0)
         rss = {fs.tx_ids[c]: float(v) for c, v in zip(heard, values, strict=True)}
         b, f = int(fs.building[j]), int(fs.floor[j])
-        extra = {"building": b} if has_building else {}
         out.append(FingerprintRecord(
             x=float(fs.x[j]), y=float(fs.y[j]), floor=f if has_building else 10 * b + f, rss=rss,
-            device=None if fs.device is None else str(fs.device[j]), **extra))
+            device=None if fs.device is None else str(fs.device[j]), building=b if has_building else 0))
     return out
 
 
