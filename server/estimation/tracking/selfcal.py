@@ -188,6 +188,14 @@ def clamp_calibration(b: float, s: float) -> tuple[float, float]:
     return math.remainder(b, 2 * math.pi), min(max(s, SCALE_RANGE[0]), SCALE_RANGE[1])
 
 
+def state_difference(a, b) -> np.ndarray:
+    """a − b for states [x, y, b, s], the bias part wrapped to (−π, π]: the trackers keep b in
+    (−π, π], so a bias drifting past ±180° is stored jumping by 2π, and it is still one angle."""
+    d = np.asarray(a, float) - np.asarray(b, float)
+    d[2] = math.remainder(float(d[2]), 2 * math.pi)
+    return d
+
+
 def clamp(x: np.ndarray) -> np.ndarray:
     """``clamp_calibration`` on a state [x, y, b, s] (a new array)."""
     x = np.asarray(x, float).copy()

@@ -21,7 +21,8 @@ learned late bends the path before it as that bias rather than as independent no
 (the PF stands in with its cloud's mean and covariance). On the held-out simulator scenarios
 that took the smoothed error from 1.45–1.47 to 1.23–1.28 m with wknn fixes and from 0.75–0.77
 to 0.65–0.66 with unbiased ones (``benchmarks/smoother_fullstate.py``, docs/msft-evaluation.md).
-Tracks stored before the states fall back to the position. The whole-state smoother's covariance
+Tracks stored before the states fall back to the position. The bias is an angle: the recursion
+differences it modulo 2π (a walk whose bias drifts past ±180° stores it jumping by 2π). The whole-state smoother's covariance
 is served calibrated (``SMOOTHED_COV_SCALE``), and every smoothed covariance positive definite.
 Every estimate of index k gets the smoothed state of k; a floor change starts a new interval.
 Nothing here needs the tracker: it runs on what the server stores.
@@ -95,16 +96,17 @@ def _psd(A: np.ndarray, floor: float) -> np.ndarray:
 
 
 def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: list[np.ndarray],
-         Fs: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+         Fs: list[np.ndarray], difference=np.subtract) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The RTS recursion over time indexes 0..n−1: filtered (xs, Ps), predicted (xp[k], Pp[k]: of k
-    from k − 1; index 0 unused) and the transitions Fs[k] (k − 1 → k)."""
+    from k − 1; index 0 unused) and the transitions Fs[k] (k − 1 → k); ``difference`` of two states
+    (the whole state's wraps its angle: ``selfcal.state_difference``)."""
     x_s, P_s = list(xs), list(Ps)
     for k in range(len(xs) - 2, -1, -1):
         F = Fs[k + 1]
         FP = F @ Ps[k]
         P_pred = _predicted_cov(FP @ F.T, Pp[k + 1])
         C = FP.T @ np.linalg.inv(P_pred)
-        x_s[k] = xs[k] + C @ (x_s[k + 1] - xp[k + 1])
+        x_s[k] = xs[k] + C @ difference(x_s[k + 1], xp[k + 1])
         P = Ps[k] + C @ (P_s[k + 1] - P_pred) @ C.T
         P_s[k] = symmetric(P)
         if np.linalg.eigvalsh(P_s[k])[0] < MIN_VARIANCE:  # round-off after a collapsed PF cloud
@@ -158,7 +160,8 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
             filtered, predicted = full
             Fs = [np.eye(len(filtered[0].mean))] + [_jacobian(filtered[k - 1], predicted[k]) for k in range(1, n)]
             x_s, P_s = _rts([np.array(f.mean) for f in filtered], [np.array(f.covariance) for f in filtered],
-                            [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs)
+                            [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs,
+                            selfcal.state_difference)
             x_s, P_s = [x[:2] for x in x_s], [SMOOTHED_COV_SCALE * P[:2, :2] for P in P_s]
         else:
             fe, pe = [track[i] for i in last], [track[i] for i in first]
