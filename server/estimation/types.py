@@ -133,7 +133,7 @@ class FullState:
         """Symmetric (a sample covariance may not be to the last bit): stored as its upper triangle."""
         c = np.asarray(cov, float)
         c = 0.5 * (c + c.T)
-        return cls(tuple(float(v) for v in mean), tuple(tuple(float(v) for v in row) for row in c),
+        return cls(tuple(np.asarray(mean, float).tolist()), tuple(map(tuple, c.tolist())),
                    None if step is None else (float(step.length_m), float(step.heading_deg)))
 
     def to_dict(self) -> dict[str, Any]:
