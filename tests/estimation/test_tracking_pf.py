@@ -586,3 +586,11 @@ def test_pf_min_survivors_is_checked():
     with pytest.raises(BadParam, match="min_survivors"):
         check_params("pf", {"min_survivors": -1})
     assert check_params("pf-xy", {"min_survivors": 20}) == {"min_survivors": 20.0}
+
+
+def test_the_pfs_learned_bias_is_reported_as_an_angle_though_its_particles_carry_it_unwrapped():
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2), seed=1)
+    t.particles[:, 2] = 2 * math.pi + math.radians(7.0)  # a bias that drifted a whole turn
+    assert t.heading_bias_deg == pytest.approx(7.0)
+    t.particles[:, 2] = math.radians(-190.0)
+    assert t.heading_bias_deg == pytest.approx(170.0)

@@ -298,7 +298,8 @@ class Calibrating:
 
     @property
     def heading_bias_deg(self) -> float:
-        return math.degrees(float(self.state_mean[2]))
+        """The learned bias in [−180°, 180°) (a PF's particles carry it unwrapped)."""
+        return float(wrap_deg(math.degrees(float(self.state_mean[2]))))
 
     @property
     def step_scale(self) -> float:
