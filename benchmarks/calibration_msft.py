@@ -3,8 +3,8 @@
     python benchmarks/calibration_msft.py [DATA_DIR] [--cov-floor 8] [--bootstrap 100]
 
 Per fold (walk i is tested in fold i % 4, as in ``client_sim msft``): the map walks' rows
-(``device`` = the walk) go through the training step's held-out stage — every walk held out
-once in 5 folds (`group_held_out`) — and `fit_calibration` is fitted on those residuals,
+(``device`` = the walk) go through the training step's held-out stage (`held_out_stage`: every walk
+held out once in 5 folds) and `fit_calibration` is fitted on those residuals,
 as the server does. Printed: the fitted (scale, floor), the served σ per axis at the map's
 median and 90th-percentile raw σ (where the fixes' covariances lie), the 10th–90th
 percentiles of that served σ over bootstrap resamples of the residuals (how much the fit
@@ -27,14 +27,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
-from server.estimation.fingerprint import FingerprintSet, holdout_split, make_model  # noqa: E402
+from server.estimation.fingerprint import FingerprintSet, held_out_stage, make_model  # noqa: E402
 from server.estimation.fingerprint.calibration import (  # noqa: E402
     CovarianceCalibration,
     clipped_mean,
     fit_calibration,
     nis,
 )
-from server.estimation.fingerprint.metrics import group_held_out  # noqa: E402
 
 
 def served_sigma(cal: CovarianceCalibration, raw_sigma: float) -> float:
@@ -62,9 +61,7 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for k in range(a.folds):
         fs = FingerprintSet.from_rows([r for j in range(n) if j % a.folds != k for r in rows[j]])
-        train, _, _ = holdout_split(fs, "device", 0.2, 0)
-        validated = factory().fit(train)
-        held = group_held_out(factory, validated, fs, "device", 5)
+        validated, _, _, held = held_out_stage(factory, fs, "device", 0.2, 0)
         assert held is not None
         cal = fit_calibration(held.residuals, held.covariances)
         raw = np.sqrt(0.5 * (held.covariances[:, 0, 0] + held.covariances[:, 1, 1]))

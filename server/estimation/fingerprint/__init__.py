@@ -15,7 +15,7 @@ from .features import RssEncoder, heading_features
 from .fusion import cold_start_fix, exp_weights, fuse_fixes
 from .kde import KDEModel
 from .knn import KNNModel
-from .metrics import Metrics, evaluate, fit_and_validate, holdout_split
+from .metrics import Metrics, evaluate, fit_and_validate, held_out_stage, holdout_split
 from .nbc import NBCModel
 from .posterior import Prediction
 from .propagation import PropagationModel
@@ -28,6 +28,6 @@ __all__ = [
     "ALGORITHMS", "ArtifactError", "FingerprintModel", "FingerprintSet", "KDEModel", "KNNModel", "Metrics",
     "NBCModel", "NotFittedError", "Prediction", "PropagationModel", "ReferencePoints", "RssEncoder",
     "SVMModel", "TKBEModel", "UnknownTransmittersError", "WKNNModel", "checksum", "cold_start_fix", "evaluate",
-    "exp_weights", "fit_and_validate", "from_bytes", "fuse_fixes", "group_split",
+    "exp_weights", "fit_and_validate", "held_out_stage", "from_bytes", "fuse_fixes", "group_split",
     "heading_features", "holdout_split", "make_model", "random_split", "to_bytes",
 ]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -281,12 +282,11 @@ def group_held_out(model_factory, validated, fs: FingerprintSet, by: str, folds:
     return HeldOut.pool(parts) if parts else None
 
 
-def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
-                     seed: int = 0):
-    """The server's training step: fit on a held-out split and `validate`, then fit a
-    fresh model on all of ``fs`` carrying the calibration (reusing the split model's
-    own choices, so the second fit does not cross-validate again). ``model_factory()`` returns
-    an unfitted model. Returns (model, Validation).
+def held_out_stage(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
+                   seed: int = 0) -> tuple[Any, FingerprintSet, str, HeldOut | None]:
+    """The training step's held-out stage: (the model fitted on the held-out split's training
+    part, the split's test part, the split's description, the pooled residuals of every group
+    held out once or None).
 
     ``how="auto"``: held-out devices when the site has at least 3, else held-out
     reference points — not random scans, whose residuals at surveyed points are too small
@@ -304,6 +304,16 @@ def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_
         pooled = group_held_out(model_factory, validated, fs, by, folds)
         if pooled is not None:
             split = f"every {by} held out once, {folds} folds (timings: {split})"
+    return validated, test, split, pooled
+
+
+def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
+                     seed: int = 0):
+    """The server's training step: `held_out_stage`, `validate`, then fit a fresh model on all
+    of ``fs`` carrying the calibration (reusing the split model's own choices, so the second
+    fit does not cross-validate again). ``model_factory()`` returns an unfitted model.
+    Returns (model, Validation)."""
+    validated, test, split, pooled = held_out_stage(model_factory, fs, how, test_fraction, seed)
     v = validate(validated, test, split, n_single=50, pooled=pooled)
     m = model_factory()
     m.reuse_choices(validated)
