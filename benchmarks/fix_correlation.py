@@ -39,7 +39,7 @@ def walk_errors(model, rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.nda
     pred = model.predict(fs.aligned_rss(model.tx_ids_), None)
     truth = np.column_stack([fs.x, fs.y])
     err = pred.xy - truth
-    white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(pred.covariance, err)])
+    white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(pred.covariance, err, strict=True)])
     walked = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth, axis=0).T))])
     return err, white, walked
 
