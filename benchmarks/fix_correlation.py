@@ -2,6 +2,7 @@
 correlation against the distance walked between two fixes.
 
     python benchmarks/fix_correlation.py [DATA_DIR] [--folds 4] [--algorithm knn]
+    python benchmarks/fix_correlation.py --simulator tune [--n 12]     # the simulator's knn fixes
 
 Per fold (walk i is tested in fold i % 4, as in ``client_sim msft``) a model is trained on the
 other walks as the server trains it (``fit_and_validate``: the covariance calibration included),
@@ -9,6 +10,8 @@ and every scan of the fold's test walks is located. For each pair of fixes of on
 distance walked between them along the waypoint path; printed per band of d: the correlation of
 the two fixes' errors (Σ eᵢ·eⱼ / √(Σ|eᵢ|²·Σ|eⱼ|²), raw in metres and whitened by each fix's
 calibrated covariance), i.e. the share ρ of a fix's error that a fix d metres on still carries.
+``--simulator SPLIT`` measures the same on the knn fixes of ``benchmarks/scenario_family.py``'s
+scenarios (its own model per scenario), to compare the simulator's map errors with the real ones.
 A tracker that fuses the fixes as independent assumes ρ = 0 at every d (docs/msft-evaluation.md,
 "The fixes' shared error as a consider state"). Chooses nothing; a diagnostic for a
 training-time estimate of ρ.
@@ -32,16 +35,47 @@ from server.estimation.fingerprint import FingerprintSet, fit_and_validate, make
 BANDS = [(0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 1e9)]
 
 
-def walk_errors(model, rows: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The walk's fix errors (n, 2), the same whitened by their calibrated covariance, and the
-    distance walked to each scan (n,), for the scans the model can locate."""
-    fs = FingerprintSet.from_rows(rows).select_kinds(["wifi"]).drop_empty()
-    pred = model.predict(fs.aligned_rss(model.tx_ids_), None)
-    truth = np.column_stack([fs.x, fs.y])
-    err = pred.xy - truth
-    white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(pred.covariance, err, strict=True)])
+def walk_errors(fixes: np.ndarray, covariances: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, ...]:
+    """A walk's fix errors (n, 2), the same whitened by the fixes' covariances, and the distance
+    walked to each fix (n,); ``truth`` the true positions in walking order."""
+    err = fixes - truth
+    white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(covariances, err, strict=True)])
     walked = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth, axis=0).T))])
     return err, white, walked
+
+
+def msft_walks(data_dir: str, folds: int, algorithm: str):
+    """Each MSFT test walk's (fixes, calibrated covariances, truth), its fold's model trained on
+    the other folds' walks as the server trains it."""
+    rows = walk_rows(data_dir, 3.0)[1]
+    n = len(rows)
+    for k in range(folds):
+        fs = FingerprintSet.from_rows([r for j in range(n) if j % folds != k for r in rows[j]])
+        model, _ = fit_and_validate(lambda: make_model(algorithm, {}, kinds=["wifi"]), fs, "device")
+        for j in range(k, n, folds):
+            test = FingerprintSet.from_rows(rows[j]).select_kinds(["wifi"]).drop_empty()
+            pred = model.predict(test.aligned_rss(model.tx_ids_), None)
+            yield pred.xy, pred.covariance, np.column_stack([test.x, test.y])
+        print(f"fold {k} done", file=sys.stderr, flush=True)
+
+
+def simulator_walks(split: str, n: int):
+    """Each simulated scenario's (knn fixes, their covariances, truth), as scenario_family makes them."""
+    from benchmarks.scenario_family import World, draw, walk
+
+    for i in range(n):
+        world = World(draw(split, i))
+        w = walk(world)
+        model = world.model("knn")
+        xy, cov, truth = [], [], []
+        for scan, p in zip(w.scans, w.scan_truth, strict=True):
+            if not scan.rss:
+                continue
+            f = model.locate(scan.rss)
+            xy.append((f.x, f.y))
+            cov.append(np.asarray(f.covariance, float))
+            truth.append(p)
+        yield np.asarray(xy), np.asarray(cov), np.asarray(truth)
 
 
 def band_sums(err: np.ndarray, walked: np.ndarray) -> np.ndarray:
@@ -65,22 +99,20 @@ def main() -> None:
     ap.add_argument("data_dir", nargs="?", default=str(SHARED_DATA / "msft_site1_f1"))
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--algorithm", default="knn")
+    ap.add_argument("--simulator", choices=["tune", "heldout", "stress"], help="the simulator's scenarios instead")
+    ap.add_argument("--n", type=int, default=12, help="with --simulator: scenarios 0..n-1")
     a = ap.parse_args()
 
-    rows = walk_rows(a.data_dir, 3.0)[1]
-    n = len(rows)
+    walks = simulator_walks(a.simulator, a.n) if a.simulator else msft_walks(a.data_dir, a.folds, a.algorithm)
     raw, white = np.zeros((len(BANDS), 4)), np.zeros((len(BANDS), 4))
     walk_share = []
-    for k in range(a.folds):
-        fs = FingerprintSet.from_rows([r for j in range(n) if j % a.folds != k for r in rows[j]])
-        model, _ = fit_and_validate(lambda: make_model(a.algorithm, {}, kinds=["wifi"]), fs, "device")
-        for j in range(k, n, a.folds):
-            err, w, walked = walk_errors(model, rows[j])
-            raw += band_sums(err, walked)
-            white += band_sums(w, walked)
-            walk_share.append(float(np.sum(err.mean(0) ** 2) / np.mean(np.sum(err**2, 1))))
-        print(f"fold {k} done", file=sys.stderr, flush=True)
-    print(f"{n} walks, {a.algorithm}, {a.folds} folds; share of a walk's mean squared fix error that is its "
+    for fixes, covariances, truth in walks:
+        err, w, walked = walk_errors(fixes, covariances, truth)
+        raw += band_sums(err, walked)
+        white += band_sums(w, walked)
+        walk_share.append(float(np.sum(err.mean(0) ** 2) / np.mean(np.sum(err**2, 1))))
+    source = f"simulator {a.simulator} 0–{a.n - 1}, knn" if a.simulator else f"MSFT, {a.algorithm}, {a.folds} folds"
+    print(f"{len(walk_share)} walks ({source}); share of a walk's mean squared fix error that is its "
           f"mean error (|ē|² / mean |e|²): median {np.median(walk_share):.2f}, mean {np.mean(walk_share):.2f}")
     print("| distance walked between two fixes | pairs | error correlation (m) | whitened |")
     print("|---|---|---|---|")

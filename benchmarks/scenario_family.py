@@ -1,6 +1,6 @@
 """A family of simulated walks for tuning and for held-out evaluation of the trackers.
 
-    python benchmarks/scenario_family.py --split heldout --n 12 [--fixes knn|gaussian|both]
+    python benchmarks/scenario_family.py --split heldout --n 12 [--fixes knn|gaussian|both|shared]
     python benchmarks/scenario_family.py --split tune --n 12 --filters ekf,ekf-xy
 
 Written apart from ``client_sim`` (its own world, radio and PDR error model) and run
@@ -24,7 +24,12 @@ chosen, apart from ``heldout``.
 
 With ``--fixes gaussian`` the fixes are unbiased: the truth plus N(0, σ²I) with the
 honest covariance σ²I (the fix quality drawn from the split's range); that is where
-the share of refused fixes must stay below 5 %.
+the share of refused fixes must stay below 5 %. With ``--fixes shared`` (not in ``both``) the
+fixes' error is shared along the walk as on the real MSFT walks (``fix_correlation.py``: the
+knn fixes here share ≈ 0.02 of their error over a walk, MSFT's ≈ 0.47): the truth plus a
+walk-constant offset (variance ``SHARED_WALK``·σ²), a part that decays over
+``SHARED_LENGTH_M`` walked (``SHARED_DECAYING``·σ²) and white noise (the rest), declared with
+the same honest marginal covariance σ²I.
 
 Figures per method: mean / p90 error (m) over every estimate of every scenario; the
 position NEES (2-D; mean and median over step estimates, 2 is consistent, the share above
@@ -263,6 +268,31 @@ class GaussianFixes:
         return Fix(float(z[0]), float(z[1]), 0, self.cov)
 
 
+#: shares of a ``SharedFixes`` fix's variance: constant over the walk, decaying over SHARED_LENGTH_M
+#: (from MSFT site 1's knn fixes, benchmarks/fix_correlation.py: whitened correlation ≈ 0.45 beyond
+#: 10 m walked, ≈ 0.8 within 2 m)
+SHARED_WALK, SHARED_DECAYING, SHARED_LENGTH_M = 0.45, 0.35, 8.0
+
+
+class SharedFixes(GaussianFixes):
+    """Fixes whose error a walk shares (see the module's ``--fixes shared``), declared with
+    their honest marginal covariance σ²I."""
+
+    def __init__(self, w: Walk, std_m: float, seed: int):
+        rng = np.random.default_rng(seed)
+        offset = math.sqrt(SHARED_WALK) * std_m * rng.standard_normal(2)
+        walked = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(w.scan_truth, axis=0).T))])
+        slow, errors = rng.standard_normal(2), []
+        for k in range(len(walked)):
+            if k:
+                phi = math.exp(-(walked[k] - walked[k - 1]) / SHARED_LENGTH_M)
+                slow = phi * slow + math.sqrt(1 - phi * phi) * rng.standard_normal(2)
+            white = math.sqrt(1 - SHARED_WALK - SHARED_DECAYING) * rng.standard_normal(2)
+            errors.append(offset + std_m * (math.sqrt(SHARED_DECAYING) * slow + white))
+        self.by_t = {s.t: p + e for s, p, e in zip(w.scans, w.scan_truth, errors, strict=True)}
+        self.cov = np.eye(2) * std_m**2
+
+
 # --------------------------------------------------------------------------- running
 #: the fingerprint model of the ``knn`` fixes (``--algorithm``)
 ALGORITHM = ["knn"]
@@ -340,8 +370,8 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
     world = World(sc)
     w = walk(world)
     fixes: GaussianFixes | ModelFixes
-    if fix_kind == "gaussian":
-        fixes = GaussianFixes(w, sc.gauss_fix_std_m, sc.seed + 4)
+    if fix_kind in ("gaussian", "shared"):
+        fixes = (GaussianFixes if fix_kind == "gaussian" else SharedFixes)(w, sc.gauss_fix_std_m, sc.seed + 4)
         fp = [float(np.hypot(*(fixes.by_t[s.t] - p))) for s, p in zip(w.scans, w.scan_truth, strict=True)]
         site = SiteMap()
     else:
@@ -409,8 +439,9 @@ def main() -> int:
     ap.add_argument("--n", type=int, default=12, help="scenarios")
     ap.add_argument("--first", type=int, default=0, help="index of the first scenario")
     ap.add_argument("--filters", default=",".join(FILTERS))
-    ap.add_argument("--fixes", choices=("knn", "gaussian", "both"), default="both",
-                    help="knn: the fixes of a fingerprint model (--algorithm), gaussian: truth plus Gaussian noise")
+    ap.add_argument("--fixes", choices=("knn", "gaussian", "both", "shared"), default="both",
+                    help="knn: the fixes of a fingerprint model (--algorithm), gaussian: truth plus Gaussian noise, "
+                         "both: those two, shared: truth plus an error shared along the walk as on real walks")
     ap.add_argument("--cov-scale", type=float, default=1.0,
                     help="multiply the model's (already calibrated) fix covariance by this (default 1: as served)")
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
