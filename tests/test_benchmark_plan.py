@@ -36,3 +36,28 @@ def test_the_splits_draw_from_ranges_that_do_not_overlap():
     for i in range(8):
         sc = draw("stress", i)
         assert 0.28 <= abs(sc.drift_deg_per_step) <= 0.4 and sc.seed == 30_000 + i
+
+
+def test_shared_fixes_share_their_error_along_the_walk_as_declared():
+    """``--fixes shared``: each fix's error has the declared marginal variance σ²I, and fixes a few
+    metres apart share most of it (the real walks' property the simulator's knn fixes lack), while
+    ``--fixes gaussian`` fixes share nothing."""
+    from benchmarks.fix_correlation import band_sums, correlation, walk_errors
+    from benchmarks.scenario_family import GaussianFixes, SharedFixes
+
+    near = {}
+    for kind in (SharedFixes, GaussianFixes):
+        sums, squares, count = np.zeros((6, 4)), 0.0, 0
+        for index in range(12):
+            sc = draw("heldout", index)
+            w = walk(World(sc))
+            fixes = kind(w, sc.gauss_fix_std_m, sc.seed + 4)
+            xy = np.array([fixes.by_t[s.t] for s in w.scans])
+            err, white, walked = walk_errors(xy, np.array([fixes.cov] * len(xy)), w.scan_truth)
+            sums += band_sums(white, walked)
+            squares, count = squares + float((white**2).sum()), count + len(white)
+        assert squares / count == pytest.approx(2.0, rel=0.25)  # E|whitened error|² = 2 in 2-D
+        near[kind] = correlation(sums)[1]  # fixes 2–5 m apart
+    assert near[GaussianFixes] == pytest.approx(0.0, abs=0.1)
+    # ≈ SHARED_WALK + SHARED_DECAYING·e^(−3.5 m / 8 m) ≈ 0.68 expected; the simulator's knn fixes: ≤ 0.25
+    assert near[SharedFixes] > 0.5
