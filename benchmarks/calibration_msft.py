@@ -61,7 +61,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|")
     for k in range(a.folds):
         fs = FingerprintSet.from_rows([r for j in range(n) if j % a.folds != k for r in rows[j]])
-        validated, _, _, held = held_out_stage(factory, fs, "device", 0.2, 0)
+        stage = held_out_stage(factory, fs, "device", 0.2, 0)
+        held = stage.pooled
         assert held is not None
         cal = fit_calibration(held.residuals, held.covariances)
         raw = np.sqrt(0.5 * (held.covariances[:, 0, 0] + held.covariances[:, 1, 1]))
@@ -70,7 +71,7 @@ def main() -> None:
         boot = np.array([[served_sigma(fit_calibration(held.residuals[i], held.covariances[i]), s) for s in spots]
                          for i in (rng.integers(0, len(raw), len(raw)) for _ in range(a.bootstrap))])
         full = factory()
-        full.reuse_choices(validated)
+        full.reuse_choices(stage.validated)
         full.fit(fs)
         test = FingerprintSet.from_rows([r for j in range(n) if j % a.folds == k for r in rows[j]])
         test = test.select_kinds(["wifi"]).drop_empty()

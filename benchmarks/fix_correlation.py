@@ -28,6 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
+from benchmarks.scenario_family import ModelFixes, World, distance_walked, draw, located, walk  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, fit_and_validate, make_model  # noqa: E402
 
@@ -40,8 +41,7 @@ def walk_errors(fixes: np.ndarray, covariances: np.ndarray, truth: np.ndarray) -
     walked to each fix (n,); ``truth`` the true positions in walking order."""
     err = fixes - truth
     white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(covariances, err, strict=True)])
-    walked = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth, axis=0).T))])
-    return err, white, walked
+    return err, white, distance_walked(truth)
 
 
 def msft_walks(data_dir: str, folds: int, algorithm: str):
@@ -61,21 +61,12 @@ def msft_walks(data_dir: str, folds: int, algorithm: str):
 
 def simulator_walks(split: str, n: int):
     """Each simulated scenario's (knn fixes, their covariances, truth), as scenario_family makes them."""
-    from benchmarks.scenario_family import World, draw, walk
-
     for i in range(n):
         world = World(draw(split, i))
         w = walk(world)
-        model = world.model("knn")
-        xy, cov, truth = [], [], []
-        for scan, p in zip(w.scans, w.scan_truth, strict=True):
-            if not scan.rss:
-                continue
-            f = model.locate(scan.rss)
-            xy.append((f.x, f.y))
-            cov.append(np.asarray(f.covariance, float))
-            truth.append(p)
-        yield np.asarray(xy), np.asarray(cov), np.asarray(truth)
+        pairs = located(w, ModelFixes(world.model("knn")))
+        yield (np.array([(f.x, f.y) for f, _ in pairs]), np.array([np.asarray(f.covariance, float) for f, _ in pairs]),
+               np.array([p for _, p in pairs]))
 
 
 def band_sums(err: np.ndarray, walked: np.ndarray) -> np.ndarray:

@@ -235,6 +235,11 @@ def walk(world: World) -> Walk:
     return Walk(np.array(truth), steps, scans, np.array(scan_truth))
 
 
+def distance_walked(points: np.ndarray) -> np.ndarray:
+    """Metres walked from the first of ``points`` (n, 2) to each, along them."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
+
+
 def has_snap(sc: Scenario) -> bool:
     """Whether the scenario's walk triggers a landmark snap (an iBeacon's filtered RSS entering its
     strong zone): what ``--with-snap`` keeps, chosen on the inputs, before any tracker runs."""
@@ -281,7 +286,7 @@ class SharedFixes(GaussianFixes):
     def __init__(self, w: Walk, std_m: float, seed: int):
         rng = np.random.default_rng(seed)
         offset = math.sqrt(SHARED_WALK) * std_m * rng.standard_normal(2)
-        walked = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(w.scan_truth, axis=0).T))])
+        walked = distance_walked(w.scan_truth)
         slow, errors = rng.standard_normal(2), []
         for k in range(len(walked)):
             if k:
@@ -291,6 +296,17 @@ class SharedFixes(GaussianFixes):
             errors.append(offset + std_m * (math.sqrt(SHARED_DECAYING) * slow + white))
         self.by_t = {s.t: p + e for s, p, e in zip(w.scans, w.scan_truth, errors, strict=True)}
         self.cov = np.eye(2) * std_m**2
+
+
+def located(w: Walk, fixes: GaussianFixes | ModelFixes) -> list[tuple[Fix, np.ndarray]]:
+    """Each scan's fix (no search area) with the true position, for the scans that give one."""
+    out = []
+    for s, p in zip(w.scans, w.scan_truth, strict=True):
+        try:
+            out.append((fixes.fix(s, None), p))
+        except Exception:  # noqa: BLE001 - nothing known heard
+            continue
+    return out
 
 
 # --------------------------------------------------------------------------- running
@@ -372,18 +388,11 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
     fixes: GaussianFixes | ModelFixes
     if fix_kind in ("gaussian", "shared"):
         fixes = (GaussianFixes if fix_kind == "gaussian" else SharedFixes)(w, sc.gauss_fix_std_m, sc.seed + 4)
-        fp = [float(np.hypot(*(fixes.by_t[s.t] - p))) for s, p in zip(w.scans, w.scan_truth, strict=True)]
         site = SiteMap()
     else:
         fixes = ModelFixes(world.model(ALGORITHM[0]), cov_scale)
-        fp = []
-        for s, p in zip(w.scans, w.scan_truth, strict=True):
-            try:
-                f = fixes.fix(s, None)
-            except Exception:  # noqa: BLE001 - nothing known heard
-                continue
-            fp.append(float(np.hypot(f.x - p[0], f.y - p[1])))
         site = world.site()
+    fp = [float(np.hypot(f.x - p[0], f.y - p[1])) for f, p in located(w, fixes)]
     if CORRIDOR_M[0] is not None:
         walls, walkable = world.plan(CORRIDOR_M[0])
         site = replace(site, walls={(0, 0): walls}, walkable={(0, 0): walkable})

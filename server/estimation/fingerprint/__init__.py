@@ -28,6 +28,6 @@ __all__ = [
     "ALGORITHMS", "ArtifactError", "FingerprintModel", "FingerprintSet", "KDEModel", "KNNModel", "Metrics",
     "NBCModel", "NotFittedError", "Prediction", "PropagationModel", "ReferencePoints", "RssEncoder",
     "SVMModel", "TKBEModel", "UnknownTransmittersError", "WKNNModel", "checksum", "cold_start_fix", "evaluate",
-    "exp_weights", "fit_and_validate", "held_out_stage", "from_bytes", "fuse_fixes", "group_split",
-    "heading_features", "holdout_split", "make_model", "random_split", "to_bytes",
+    "exp_weights", "fit_and_validate", "from_bytes", "fuse_fixes", "group_split",
+    "heading_features", "held_out_stage", "holdout_split", "make_model", "random_split", "to_bytes",
 ]

@@ -282,11 +282,20 @@ def group_held_out(model_factory, validated, fs: FingerprintSet, by: str, folds:
     return HeldOut.pool(parts) if parts else None
 
 
+@dataclass
+class HeldOutStage:
+    """What the training step's held-out stage gives `validate`."""
+
+    validated: Any  # the model fitted on the split's training part
+    test: FingerprintSet  # the split's test part
+    split: str  # how it was split
+    pooled: HeldOut | None  # every group held out once (group splits), else None
+
+
 def held_out_stage(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
-                   seed: int = 0) -> tuple[Any, FingerprintSet, str, HeldOut | None]:
-    """The training step's held-out stage: (the model fitted on the held-out split's training
-    part, the split's test part, the split's description, the pooled residuals of every group
-    held out once or None).
+                   seed: int = 0) -> HeldOutStage:
+    """The training step's held-out stage: a model fitted on a held-out split's training part
+    and, for a group split, every group held out once.
 
     ``how="auto"``: held-out devices when the site has at least 3, else held-out
     reference points — not random scans, whose residuals at surveyed points are too small
@@ -304,7 +313,7 @@ def held_out_stage(model_factory, fs: FingerprintSet, how: str = "auto", test_fr
         pooled = group_held_out(model_factory, validated, fs, by, folds)
         if pooled is not None:
             split = f"every {by} held out once, {folds} folds (timings: {split})"
-    return validated, test, split, pooled
+    return HeldOutStage(validated, test, split, pooled)
 
 
 def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_fraction: float = 0.2,
@@ -313,11 +322,11 @@ def fit_and_validate(model_factory, fs: FingerprintSet, how: str = "auto", test_
     of ``fs`` carrying the calibration (reusing the split model's own choices, so the second
     fit does not cross-validate again). ``model_factory()`` returns an unfitted model.
     Returns (model, Validation)."""
-    validated, test, split, pooled = held_out_stage(model_factory, fs, how, test_fraction, seed)
-    v = validate(validated, test, split, n_single=50, pooled=pooled)
+    stage = held_out_stage(model_factory, fs, how, test_fraction, seed)
+    v = validate(stage.validated, stage.test, stage.split, n_single=50, pooled=stage.pooled)
     m = model_factory()
-    m.reuse_choices(validated)
-    del validated, test
+    m.reuse_choices(stage.validated)
+    del stage
     m.fit(fs)
     m.calibration_ = v.calibration
     v.metrics.fit_time_s = m.fit_time_s_
