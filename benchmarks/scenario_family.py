@@ -257,11 +257,14 @@ class ModelFixes:
             raise NoFix("the scan heard nothing")
         f = self.model.locate(scan.rss, near=None if near is None else (near.x, near.y),
                               radius_m=None if near is None else near.radius_m)
-        return Fix(f.x, f.y, f.floor, np.asarray(f.covariance) * self.cov_scale)
+        return Fix(f.x, f.y, f.floor, np.asarray(f.covariance) * self.cov_scale, shared_share=f.shared_share)
 
 
 class GaussianFixes:
     """Unbiased fixes with their honest covariance."""
+
+    #: the share of a fix's variance that the walk's fixes have in common (``Fix.shared_share``)
+    share: float | None = None
 
     def __init__(self, w: Walk, std_m: float, seed: int):
         rng = np.random.default_rng(seed)
@@ -270,7 +273,7 @@ class GaussianFixes:
 
     def fix(self, scan: Scan, near: Area | None) -> Fix:
         z = self.by_t[scan.t]
-        return Fix(float(z[0]), float(z[1]), 0, self.cov)
+        return Fix(float(z[0]), float(z[1]), 0, self.cov, shared_share=self.share)
 
 
 #: shares of a ``SharedFixes`` fix's variance: constant over the walk, decaying over SHARED_LENGTH_M
@@ -281,7 +284,10 @@ SHARED_WALK, SHARED_DECAYING, SHARED_LENGTH_M = 0.45, 0.35, 8.0
 
 class SharedFixes(GaussianFixes):
     """Fixes whose error a walk shares (see the module's ``--fixes shared``), declared with
-    their honest marginal covariance σ²I."""
+    their honest marginal covariance σ²I and the walk-constant share (as a map whose training
+    measured it declares its ``walk_share``)."""
+
+    share = SHARED_WALK
 
     def __init__(self, w: Walk, std_m: float, seed: int):
         rng = np.random.default_rng(seed)

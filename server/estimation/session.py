@@ -162,7 +162,8 @@ class SessionEstimator:
         if self.tracker.walkable is not None:
             mean = self.tracker.walkable.nearest_inside(mean)[0]
         self.estimate = Estimate.of(t, mean, self.tracker.covariance, level, source, building)
-        self.full_state = (FullState.of(self.tracker.state_mean, self.tracker.state_covariance, step)
+        n = selfcal.N_AUG  # (the smoother's state: an EKF's walk offset is not smoothed)
+        self.full_state = (FullState.of(self.tracker.state_mean[:n], self.tracker.state_covariance[:n, :n], step)
                            if isinstance(self.tracker, selfcal.Calibrating) else None)
         return self.estimate
 
@@ -337,7 +338,7 @@ class SessionEstimator:
         if not self.tracker.augmented:
             apply_snap(self.tracker, snap)
             return None
-        fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building, shared_error=False)
+        fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building, shared_share=0.0)
         d2 = self._d2(fix, snap.covariance)
         if d2 <= GATE_D2:
             self.tracker.update(fix)
@@ -362,11 +363,12 @@ class SessionEstimator:
         learns = self.tracker.augmented
         R = R_own * self.fix_noise.scale if learns else R_own
         fix = replace(fix, covariance=R)
-        d2 = self._d2(fix, R)
+        expected = self.tracker.fix_innovation(fix)
+        d2 = expected.d2(R)
         if self.innovations is not None:
             self.innovations.append((d2, d2 <= GATE_D2))
         if learns:
-            self.fix_noise.observe(fix.mean - np.asarray(self.tracker.mean, float), self.tracker.covariance, R_own)
+            self.fix_noise.observe(expected.innovation, expected.covariance, expected.noise_share * R_own)
         if d2 > GATE_D2 and self.gated_in_a_row >= MAX_GATED_IN_A_ROW:
             self.tracker.inflate(INFLATE_FACTOR)
             d2 = self._d2(fix, R)
@@ -384,11 +386,10 @@ class SessionEstimator:
         return f"{what} {distance:.1f} m from the estimate is an outlier (squared Mahalanobis distance {d2:.1f} > {GATE_D2})"
 
     def _d2(self, fix: Fix, R: np.ndarray) -> float:
-        """Squared Mahalanobis distance of the fix from the estimate under P + R."""
+        """Squared Mahalanobis distance of the fix from what the tracker expects of it
+        (``Tracker.fix_innovation``: P + R, or with the walk's fix offset)."""
         assert self.tracker is not None
-        innovation = np.asarray(fix.mean, float) - np.asarray(self.tracker.mean, float)
-        S = np.asarray(self.tracker.covariance, float) + R
-        return float(innovation @ np.linalg.solve(S, innovation))
+        return self.tracker.fix_innovation(fix).d2(R)
 
     # -- persistence ----------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -61,8 +61,10 @@ class Candidate:
 @dataclass(frozen=True)
 class Fix:
     """A position estimate from one scan: mean, 2×2 covariance (m²), floor and its building.
-    ``shared_error``: a fingerprint model's fix, whose error a walk's fixes share (a PF with
-    ``fix_bias_share`` models it); a landmark snap's is its own."""
+    ``shared_share``: the share of ``covariance`` that a walk's fixes have in common — the map's
+    measured ``walk_share`` (the Kalman trackers estimate the walk's offset with it), None for a
+    fingerprint fix whose map did not measure it (only a PF with ``fix_bias_share`` models it),
+    0 for a fix whose error is its own (a landmark snap)."""
 
     x: float
     y: float
@@ -71,7 +73,7 @@ class Fix:
     reference_point: str | None = None
     candidates: list[Candidate] = field(default_factory=list)
     building: int = 0
-    shared_error: bool = True
+    shared_share: float | None = None
 
     @property
     def mean(self) -> np.ndarray:

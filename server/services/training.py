@@ -123,7 +123,8 @@ def metrics_record(v: Validation) -> dict[str, Any]:
     figures = {**m.as_api_dict(), "fit_time_s": m.fit_time_s, "validated_on": m.n_test,
                "building_hit_rate": m.building_hit_rate, "us_per_query": m.single_query_us,
                "held_out": v.split, "held_out_pooled": v.pooled,
-               "calibration": {"scale": v.calibration.scale, "floor_m": v.calibration.floor_m},
+               "calibration": {"scale": v.calibration.scale, "floor_m": v.calibration.floor_m,
+                               "walk_share": v.calibration.walk_share},
                "nis_raw": {"mean": v.nis_raw.mean, "median": v.nis_raw.median},
                "nis_calibrated": {"mean": v.nis_calibrated.mean, "median": v.nis_calibrated.median},
                "points": [[p.building, p.floor, round(p.x, 2), round(p.y, 2), p.label, p.n, round(p.mean_error_m, 2)]

@@ -122,3 +122,54 @@ def test_a_device_split_reports_the_error_of_every_walk_held_out_once():
     assert v.metrics.n_test > len(test)
     assert "every device held out once" in v.split
     assert len(v.points) == len(fs.reference_points())
+
+
+def _grouped_residuals(share: float, groups: int, seed: int = 0):
+    """Residuals of ``groups`` walks of 40 rows 2 m apart, each row's covariance its own, whose
+    whitened errors share ``share`` of their variance within a walk (a walk-constant part)."""
+    rng = np.random.default_rng(seed)
+    r, c, g, xy = [], [], [], []
+    for k in range(groups):
+        u = rng.standard_normal(2)
+        for i in range(40):
+            a = rng.uniform(0.5, 3.0)
+            cov = np.array([[a, 0.3], [0.3, 1.0]])
+            white = np.sqrt(share) * u + np.sqrt(1 - share) * rng.standard_normal(2)
+            r.append(np.linalg.cholesky(cov) @ white)
+            c.append(cov)
+            g.append(f"walk{k}")
+            xy.append((2.0 * i, 0.0))
+    return np.array(r), np.array(c), np.array(g), np.array(xy)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.3, 0.6])
+def test_measure_walk_share_recovers_a_known_share(share):
+    from server.estimation.fingerprint.calibration import measure_walk_share
+
+    measured = measure_walk_share(*_grouped_residuals(share, groups=60))
+    assert measured == pytest.approx(share, abs=0.1)
+
+
+def test_the_walk_share_needs_enough_walks_and_far_pairs():
+    from server.estimation.fingerprint.calibration import WALK_SHARE_MIN_GROUPS, measure_walk_share
+
+    r, c, g, xy = _grouped_residuals(0.5, groups=WALK_SHARE_MIN_GROUPS - 1)
+    assert measure_walk_share(r, c, g, xy) is None
+    r, c, g, xy = _grouped_residuals(0.5, groups=20)
+    assert measure_walk_share(r, c, g, xy * 0.01) is None  # every pair closer than 10 m
+
+
+def test_a_device_split_measures_the_walk_share_and_its_fixes_carry_it():
+    """Trained with each walk a device, the calibration has a walk share (the fixes of the
+    served model carry it, and the model's metrics record it); held out by reference point it
+    has none, and the fixes say so (None: not measured)."""
+    from server.services.training import metrics_record
+
+    fs, fresh = _walks_with_the_split_noisy()
+    model, v = fit_and_validate(lambda: make_model("knn", {}), fs)
+    share = v.calibration.walk_share
+    assert share is not None and 0.0 <= share <= 0.9
+    assert model.locate(fresh.scans()[0]).shared_share == share
+    assert metrics_record(v)["calibration"]["walk_share"] == share
+    points, vp = fit_and_validate(lambda: make_model("knn", {}), fs, how="points")
+    assert vp.calibration.walk_share is None and points.locate(fresh.scans()[0]).shared_share is None

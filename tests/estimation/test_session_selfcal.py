@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from server.estimation.session import SessionEstimator
-from server.estimation.types import SiteMap
+from server.estimation.tracking import smooth_track
+from server.estimation.types import Fix, Scan, SiteMap, Step
 from tests.estimation.test_session_walk import ModelFixes, corridor_walk
 
 
@@ -59,3 +60,43 @@ def test_the_heading_bias_is_learned_through_the_session(name, fixes):
         ours.append(err[last:].mean())
         seeds.append(seed_err[last:].mean())
     assert np.mean(ours) < 0.6 * np.mean(seeds), (name, ours, seeds)
+
+
+class OffsetFixes:
+    """Fixes at the truth plus one offset (4, 0) m for the whole walk and white noise, declared
+    σ² = 10 m² with their walk share 0.8 (as a map whose training measured it would)."""
+
+    def __init__(self, truth_by_t: dict[float, np.ndarray]):
+        rng = np.random.default_rng(0)
+        self.by_t = {t: p + np.array([4.0, 0.0]) + np.sqrt(2.0) * rng.standard_normal(2) for t, p in truth_by_t.items()}
+
+    def fix(self, scan: Scan, near) -> Fix:
+        z = self.by_t[scan.t]
+        return Fix(float(z[0]), float(z[1]), 0, np.eye(2) * 10.0, shared_share=0.8)
+
+
+def test_a_session_learns_the_walks_fix_offset_and_smooths_its_track():
+    """Through the session (stored and loaded between batches, the innovation gate, the fix-noise
+    scale): an EKF fed fixes that share one offset learns it, refuses none of them once it has,
+    and its stored whole states (what the smoother reads) stay [x, y, b, s]."""
+    steps = [Step(0.5 * k, 0.7, 0.0, length_std_m=0.05, heading_std_deg=2.0) for k in range(1, 61)]
+    truth = {s.t + 0.1: np.array([0.0, 0.7 * k]) for k, s in enumerate(steps, 1) if k % 2 == 0}
+    scans = [Scan(t, {"ap": -60.0}) for t in truth]
+    fixes = OffsetFixes(truth)
+    est = SessionEstimator("ekf", seed=1)
+    est.start([0.0, 0.0], [[0.01, 0.0], [0.0, 0.01]], 0, [], None, "init")
+    refused, states, track = 0, [], []
+    for t0 in np.arange(0.0, 31.0, 2.0):
+        est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+        out = est.apply_batch([s for s in steps if t0 <= s.t < t0 + 2], [s for s in scans if t0 <= s.t < t0 + 2],
+                              fixes, SiteMap())
+        refused += len(out.rejected_fixes)
+        states += list(out.states)
+        track += list(out.estimates)
+    assert est.tracker.has_offset
+    np.testing.assert_allclose(est.tracker.fix_offset, [4.0, 0.0], atol=1.5)
+    assert refused == 0
+    assert {len(s.mean) for s in states} == {4}
+    assert abs(float(est.tracker.mean[0])) < 1.5  # on its steps, not on the offset fixes
+    smoothed = smooth_track(track, states=states)
+    assert len(smoothed) == len(track) and abs(smoothed[-1].x) < 1.5

@@ -327,7 +327,7 @@ def test_pf_fix_likelihood_with_the_shared_error_is_hand_computed(walls, shared)
     before = t.particles.copy()
     R = np.array([[9.0, 1.0], [1.0, 4.0]])
     z = np.array([11.0, 0.3])
-    t.update(Fix(float(z[0]), float(z[1]), 0, R, shared_error=shared))
+    t.update(Fix(float(z[0]), float(z[1]), 0, R, shared_share=None if shared else 0.0))
     if walls is None or not shared:
         d, S = before[:, :2] - z, R
     else:

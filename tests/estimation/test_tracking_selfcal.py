@@ -247,3 +247,68 @@ def test_a_version_1_kf_dict_still_loads_as_kf():
     d = make_tracker("kf", [0, 0], np.eye(2)).to_dict()
     restored = tracker_from_dict({**d, "version": 1})
     assert restored.name == "kf" and restored.to_dict() == d
+
+
+# -- the walk's fix offset (a fix's ``shared_share``) ---------------------------------------------
+
+
+def test_ekf_first_fix_with_a_walk_share_by_hand():
+    # x0 = (0, 0, 0, 1), P0 = diag(1, 1, 0.01, 0.01). Fix (1, 0), R = I, ρ = 0.5: the state grows by
+    # the offset o, prior N(0, 0.5·I); z = p + o + v, v ~ N(0, 0.5·I). S = P_pp + P_oo + 0.5·I = 2·I,
+    # K_p = P_pp S⁻¹ = 0.5·I, K_o = P_oo S⁻¹ = 0.25·I: x = 0.5, oₓ = 0.25;
+    # P_xx = 1 − 1/2 = 0.5, P_oo = 0.5 − 0.25/2 = 0.375, P_xo = −1·0.5/2 = −0.25 (per axis).
+    t = make_tracker("ekf", [0, 0], np.eye(2), **STILL)
+    assert not t.has_offset and t.fix_offset is None
+    t.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    assert t.has_offset
+    np.testing.assert_allclose(t.state_mean, [0.5, 0, 0, 1, 0.25, 0], atol=1e-12)
+    P = t.state_covariance
+    np.testing.assert_allclose(np.diag(P), [0.5, 0.5, 0.01, 0.01, 0.375, 0.375], atol=1e-12)
+    np.testing.assert_allclose([P[0, 4], P[1, 5], P[0, 5]], [-0.25, -0.25, 0.0], atol=1e-12)
+    # what it expects of the next such fix: p + o, with H P Hᵀ = P_pp + P_po + P_op + P_oo and (1 − ρ)·R
+    e = t.fix_innovation(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    np.testing.assert_allclose(e.innovation, [0.25, 0.0], atol=1e-12)
+    np.testing.assert_allclose(e.covariance, (0.5 - 0.5 + 0.375) * np.eye(2), atol=1e-12)
+    assert e.noise_share == 0.5
+    # a fix whose error is its own (a landmark snap: ρ 0) measures the position alone
+    assert t.fix_innovation(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.0)).innovation[0] == pytest.approx(0.5)
+
+
+def _offset_walk(share: float | None, seed: int = 0):
+    """An EKF on a straight walk north with exact steps, fixes every 2 steps carrying one offset
+    (3, −2) m for the whole walk plus white noise, declared as σ² = 8 m² with ``share``."""
+    rng = np.random.default_rng(seed)
+    t = make_tracker("ekf", [0, 0], np.eye(2) * 0.01)
+    errors = []
+    for k in range(1, 81):
+        t.predict(Step(k, 0.7, 0.0, length_std_m=0.05, heading_std_deg=2.0))
+        truth = np.array([0.0, 0.7 * k])
+        if k % 2 == 0:
+            z = truth + [3.0, -2.0] + np.sqrt(1.6) * rng.standard_normal(2)
+            t.update(Fix(float(z[0]), float(z[1]), 0, np.eye(2) * 8.0, shared_share=share))
+        errors.append(float(np.hypot(*(t.mean - truth))))
+    return t, np.mean(errors)
+
+
+def test_ekf_learns_the_walks_fix_offset_and_keeps_to_its_steps():
+    """Fixes that share one offset along the walk: taken as independent they pull the track onto
+    the offset; with their walk share the EKF learns the offset and keeps to its good steps."""
+    t, err_offset = _offset_walk(0.8)
+    _, err_independent = _offset_walk(None)
+    np.testing.assert_allclose(t.fix_offset, [3.0, -2.0], atol=1.0)
+    assert err_offset < 0.5 * err_independent, (err_offset, err_independent)
+
+
+def test_ekf_with_the_walk_offset_survives_json_exactly_and_a_reset_drops_it():
+    t, _ = _offset_walk(0.8)
+    restored = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
+    assert restored.has_offset
+    for tracker in (t, restored):
+        tracker.predict(Step(99, 0.7, 5.0))
+        tracker.update(Fix(2.0, 57.0, 0, np.eye(2) * 8.0, shared_share=0.8))
+        tracker.update_range([1.0, 57.0], 1.5, 0.5)
+    np.testing.assert_array_equal(restored.state_mean, t.state_mean)
+    np.testing.assert_array_equal(restored.state_covariance, t.state_covariance)
+    b = t.heading_bias_deg
+    t.reset([0.0, 0.0], np.eye(2))
+    assert not t.has_offset and t.state_mean.shape == (4,) and t.heading_bias_deg == pytest.approx(b)

@@ -532,6 +532,7 @@ class FingerprintModel:
     def fixes(self, pred: Prediction) -> list[Fix]:
         """One Fix per query: the (building, floor) the posterior chose, and candidates of that floor."""
         labels = self.rp_.labels
+        share = getattr(self, "calibration_", IDENTITY).walk_share
         out = []
         for i in range(len(pred)):
             cands = [
@@ -544,7 +545,7 @@ class FingerprintModel:
                 x=float(pred.x[i]), y=float(pred.y[i]), floor=int(pred.floor[i]),
                 covariance=pred.covariance[i].copy(),
                 reference_point=labels[best] if best >= 0 else None,
-                candidates=cands, building=int(pred.building[i]),
+                candidates=cands, building=int(pred.building[i]), shared_share=share,
             ))
         return out
 

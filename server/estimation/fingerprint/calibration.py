@@ -21,6 +21,16 @@ benchmarks/scenario_family.py (tracking error and NEES with the served fixes).
 
 The training step fits it on its held-out sample for every algorithm; every Fix the
 model answers then carries ``apply(C)``.
+
+**The walk's share** (``walk_share``, `measure_walk_share`): a fingerprint map's errors are not
+independent along a walk — one phone, one body, one stretch of the map's own mistakes — so two
+fixes of a walk share part of their error. Where the training step holds out whole groups
+(walks or phones, `metrics.group_held_out`) it measures that share from pairs of one group's
+held-out rows at least ``WALK_SHARE_MIN_M`` apart (the part that lasts, not the map's local
+smoothness): 0.23–0.39 on the MSFT site-1 fold maps (``benchmarks/fix_correlation.py`` prints it; the
+test walks' fixes share 0.42–0.45 beyond 10 m). Every fix then
+carries it (``Fix.shared_share``), and a Kalman tracker estimates the walk's offset instead of
+taking each fix's error as new. Splits by reference point cannot see a walk: None (unknown).
 """
 
 from __future__ import annotations
@@ -38,14 +48,23 @@ CLIPPED_MEAN = 2.0 * (1.0 - 1e-3)
 #: fewer held-out residuals than this: a shrunk scale only (module docstring)
 TWO_PARAMETERS_FROM = 300
 SHRINK_N = 30.0
+#: the walk's share is measured on pairs of one group's held-out rows at least this far apart (m),
+#: on groups with at least WALK_SHARE_MIN_PAIRS such pairs, from at least WALK_SHARE_MIN_GROUPS
+#: groups, and kept within [0, WALK_SHARE_MAX] (`measure_walk_share`)
+WALK_SHARE_MIN_M = 10.0
+WALK_SHARE_MIN_PAIRS = 10
+WALK_SHARE_MIN_GROUPS = 5
+WALK_SHARE_MAX = 0.9
 
 
 @dataclass(frozen=True)
 class CovarianceCalibration:
-    """``C' = scale·C + floor_m²·I``; identity by default (an uncalibrated model)."""
+    """``C' = scale·C + floor_m²·I``; identity by default (an uncalibrated model). ``walk_share``:
+    the share of C' that a walk's fixes have in common (None: not measured)."""
 
     scale: float = 1.0
     floor_m: float = 0.0
+    walk_share: float | None = None
 
     def apply(self, cov: np.ndarray) -> np.ndarray:
         """(n, 2, 2) covariances, calibrated (a new array)."""
@@ -117,3 +136,34 @@ def fit_calibration(residuals: np.ndarray, cov: np.ndarray) -> CovarianceCalibra
         if best is None or score < best[0] - 1e-9:
             best = (score, cal)
     return IDENTITY if best is None else best[1]
+
+
+def measure_walk_share(residuals: np.ndarray, cov: np.ndarray, groups: np.ndarray, xy: np.ndarray,
+                       min_distance_m: float = WALK_SHARE_MIN_M) -> float | None:
+    """The share ρ of a fix's (calibrated) covariance ``cov`` that the fixes of one group (a walk,
+    a phone) have in common. Whitened residuals wᵢ = Lᵢ⁻¹rᵢ (LLᵀ = Cᵢ, each clipped at |w|² ≤
+    ``NIS_CLIP``); per group g, over its ordered pairs at least ``min_distance_m`` apart (true
+    positions ``xy``), c_g = mean wᵢ·wⱼ and p_g = mean |wᵢ|²; ρ = mean c_g / mean p_g over the
+    groups with at least ``WALK_SHARE_MIN_PAIRS`` such pairs, kept in [0, ``WALK_SHARE_MAX``]; None
+    with fewer than ``WALK_SHARE_MIN_GROUPS`` of them. Each group weighs the same (as a new walk
+    would): pooled over pairs, the longest walks decided alone (0.12–0.78 over the four MSFT fold
+    maps); a ratio per group would be biased low (E[c/p] < E[c]/E[p])."""
+    r = np.asarray(residuals, float)
+    c = np.asarray(cov, float)
+    ok = np.isfinite(r).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
+    w = np.linalg.solve(np.linalg.cholesky(c[ok]), r[ok][..., None])[..., 0]
+    n2 = np.einsum("ij,ij->i", w, w)
+    w *= np.sqrt(np.minimum(1.0, NIS_CLIP / np.maximum(n2, 1e-300)))[:, None]
+    g, p = np.asarray(groups).astype(str)[ok], np.asarray(xy, float)[ok]
+    cross, power = [], []
+    for name in np.unique(g):
+        i = np.flatnonzero(g == name)
+        far = np.hypot(*(p[i, None, :] - p[None, i, :]).transpose(2, 0, 1)) >= min_distance_m
+        k = int(far.sum())
+        if k >= WALK_SHARE_MIN_PAIRS:
+            wi = w[i]
+            cross.append(float(np.sum((wi @ wi.T)[far])) / k)
+            power.append(float(np.sum(far, axis=1) @ np.einsum("ij,ij->i", wi, wi)) / k)
+    if len(cross) < WALK_SHARE_MIN_GROUPS or sum(power) <= 0:
+        return None
+    return float(np.clip(np.mean(cross) / np.mean(power), 0.0, WALK_SHARE_MAX))

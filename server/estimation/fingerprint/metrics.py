@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from .base import stratified_rows
-from .calibration import CovarianceCalibration, fit_calibration, nis
+from .calibration import CovarianceCalibration, fit_calibration, measure_walk_share, nis
 from .dataset import FingerprintSet, group_split, random_split
 from .posterior import Prediction
 
@@ -81,6 +81,8 @@ class HeldOut:
     building_hit: np.ndarray  # (n,) bool
     mapped: np.ndarray  # (n,) bool: the best reference point is the row's own
     points: list[PointError]  # mean error per held-out reference point
+    xy: np.ndarray  # (n, 2) true positions, m
+    group: np.ndarray | None = None  # (n,) the held-out group (walk, phone) of each row; None: not a group split
 
     @property
     def errors(self) -> np.ndarray:
@@ -93,7 +95,8 @@ class HeldOut:
         idx = getattr(model, "rp_key_index_", {})
         true_rp = np.array([idx.get(k, -1) for k in test.rp_keys()])
         return HeldOut(r, pred.covariance, pred.floor == test.floor, pred.building == test.building,
-                       pred.best_rp == true_rp, point_errors(test, np.hypot(r[:, 0], r[:, 1])))
+                       pred.best_rp == true_rp, point_errors(test, np.hypot(r[:, 0], r[:, 1])),
+                       np.column_stack([test.x, test.y]))
 
     @staticmethod
     def pool(parts: list[HeldOut]) -> HeldOut:
@@ -107,8 +110,9 @@ class HeldOut:
                 acc[0] += q.n
                 acc[1] += q.n * q.mean_error_m
         points = [PointError(b, f, x, y, label, n, total / n) for (b, f, x, y, label), (n, total) in sums.items()]
+        grouped = all(h.group is not None for h in parts)
         return HeldOut(cat("residuals"), cat("covariances"), cat("floor_hit"), cat("building_hit"), cat("mapped"),
-                       points)
+                       points, cat("xy"), cat("group") if grouped else None)
 
     def scored(self, metrics: Metrics) -> Metrics:
         """``metrics`` with its accuracy figures (and row count) taken from these rows."""
@@ -250,6 +254,8 @@ def validate(model, test: FingerprintSet, split: str = "", n_single: int = 200,
         return Validation(metrics, CovarianceCalibration(), nan, nan, [], split)
     r, c = held.residuals, held.covariances
     cal = fit_calibration(r, c)
+    if held.group is not None:
+        cal = replace(cal, walk_share=measure_walk_share(r, cal.apply(c), held.group, held.xy))
     return Validation(
         metrics=metrics, calibration=cal, nis_raw=NisSummary.of(nis(r, c)),
         nis_calibrated=NisSummary.of(nis(r, cal.apply(c))), points=held.points, split=split,
@@ -278,7 +284,8 @@ def group_held_out(model_factory, validated, fs: FingerprintSet, by: str, folds:
         m.fit(fs.subset(~out))
         test = stratified_sample(_measurable(m, fs.subset(out)), MAX_HELD_OUT // folds, k)
         if len(test):
-            parts.append(HeldOut.of(m, test, _raw_prediction(m, test)))
+            held = HeldOut.of(m, test, _raw_prediction(m, test))
+            parts.append(replace(held, group=np.asarray(getattr(test, by)).astype(str)))
     return HeldOut.pool(parts) if parts else None
 
 

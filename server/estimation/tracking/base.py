@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -126,6 +127,22 @@ def fix_cov_entries(cov) -> tuple[float, float, float]:
     return float(R[0, 0]), float(R[0, 1]), float(R[1, 1])
 
 
+@dataclass(frozen=True)
+class FixInnovation:
+    """What a tracker expects of a fix z with covariance R: the innovation z − E[z], the tracker's
+    own part of its covariance (H P Hᵀ), and the share of R that is the fix's own noise (1, or
+    1 − ρ for a tracker that carries the walk's fix offset): z ~ N(E[z], H P Hᵀ + noise_share·R)."""
+
+    innovation: np.ndarray
+    covariance: np.ndarray
+    noise_share: float = 1.0
+
+    def d2(self, R: np.ndarray) -> float:
+        """Squared Mahalanobis distance of the fix under its predicted covariance."""
+        S = self.covariance + self.noise_share * np.asarray(R, float)
+        return float(self.innovation @ np.linalg.solve(S, self.innovation))
+
+
 class Tracker(ABC):
     """A 2-D position filter fed with PDR steps and position fixes.
 
@@ -155,6 +172,11 @@ class Tracker(ABC):
     @abstractmethod
     def update(self, fix: Fix) -> None:
         """Correct the estimate with a position fix (fix.covariance is its R)."""
+
+    def fix_innovation(self, fix: Fix) -> FixInnovation:
+        """What the tracker expects of ``fix`` (the innovation gate's and the fix-noise learning's
+        view): by default z = position + the fix's own noise."""
+        return FixInnovation(np.asarray(fix.mean, float) - self.mean, self.covariance)
 
     def update_range(self, beacon_xy, range_m: float, range_std_m: float, on_wall=None) -> bool:
         """Correct with a range to a beacon; returns whether it was used.

@@ -637,7 +637,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
         """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error (a fix that shares it),
         else the seed form's."""
-        if not (fix.shared_error and self._fix_bias_on()):
+        if fix.shared_share == 0.0 or not self._fix_bias_on():
             return super()._fix_loglik(fix)
         R = fix_cov(fix.covariance)
         if self.dim == 6:

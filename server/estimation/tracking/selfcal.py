@@ -223,6 +223,13 @@ def observe_bias(x: Vec4, P: Mat4, innovation: float, var: float) -> tuple[Vec4,
             ((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33)))
 
 
+def observe_bias_array(x: np.ndarray, P: np.ndarray, innovation: float, var: float) -> tuple[np.ndarray, np.ndarray]:
+    """``observe_bias`` on a state that carries more than [x, y, b, s] (an EKF with the walk's fix
+    offset): the same scalar Kalman update, in NumPy."""
+    K = P[:, 2] / (P[2, 2] + var)
+    return clamp(x + K * innovation), P - np.outer(K, P[2, :])
+
+
 class Calibrating:
     """Mixin of the augmented trackers: what they have learned, for reports and tests; and the
     building's grid as a heading reference: the straight run and when it observes the grid
@@ -271,8 +278,13 @@ class Calibrating:
         p = self.params
         x, P = self._floats()
         r = wrap_deg(offset - math.degrees(x[2]), 90.0)
-        if abs(r) <= p["grid_gate_deg"]:
-            self._set_floats(*observe_bias(x, P, math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2))
+        if abs(r) > p["grid_gate_deg"]:
+            return
+        innovation, var = math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2
+        if len(x) == N_AUG:
+            self._set_floats(*observe_bias(x, P, innovation, var))
+        else:
+            self._set_state(*observe_bias_array(self.state_mean, self.state_covariance, innovation, var))
 
     def _floats(self) -> tuple[Vec4, Mat4]:
         """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""
@@ -317,7 +329,7 @@ class FilterpyState(Calibrating):
 
     @property
     def state_mean(self) -> np.ndarray:
-        return np.asarray(self._kf.x, float).reshape(N_AUG).copy()
+        return np.asarray(self._kf.x, float).reshape(-1).copy()
 
     @property
     def state_covariance(self) -> np.ndarray:
@@ -332,8 +344,9 @@ class FilterpyState(Calibrating):
         return self.state_covariance[:2, :2]
 
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
-        self._kf.x = np.asarray(x, float).reshape(N_AUG)
-        self._kf.P = np.asarray(P, float).reshape(N_AUG, N_AUG)
+        x = np.asarray(x, float).reshape(-1)
+        self._kf.x = x
+        self._kf.P = np.asarray(P, float).reshape(len(x), len(x))
 
     def _state(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.covariance.tolist(),
