@@ -77,13 +77,13 @@ class OffsetFixes:
 
 def test_a_session_learns_the_walks_fix_offset_and_smooths_its_track():
     """Through the session (stored and loaded between batches, the innovation gate, the fix-noise
-    scale): an EKF fed fixes that share one offset learns it, refuses none of them once it has,
+    scale): an EKF with ``walk_offset`` fed fixes that share one offset learns it, refuses none of them once it has,
     and its stored whole states (what the smoother reads) stay [x, y, b, s]."""
     steps = [Step(0.5 * k, 0.7, 0.0, length_std_m=0.05, heading_std_deg=2.0) for k in range(1, 61)]
     truth = {s.t + 0.1: np.array([0.0, 0.7 * k]) for k, s in enumerate(steps, 1) if k % 2 == 0}
     scans = [Scan(t, {"ap": -60.0}) for t in truth]
     fixes = OffsetFixes(truth)
-    est = SessionEstimator("ekf", seed=1)
+    est = SessionEstimator("ekf", seed=1, tracker_params={"walk_offset": 1})
     est.start([0.0, 0.0], [[0.01, 0.0], [0.0, 0.01]], 0, [], None, "init")
     refused, states, track = 0, [], []
     for t0 in np.arange(0.0, 31.0, 2.0):

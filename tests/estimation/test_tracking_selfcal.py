@@ -257,7 +257,10 @@ def test_ekf_first_fix_with_a_walk_share_by_hand():
     # the offset o, prior N(0, 0.5·I); z = p + o + v, v ~ N(0, 0.5·I). S = P_pp + P_oo + 0.5·I = 2·I,
     # K_p = P_pp S⁻¹ = 0.5·I, K_o = P_oo S⁻¹ = 0.25·I: x = 0.5, oₓ = 0.25;
     # P_xx = 1 − 1/2 = 0.5, P_oo = 0.5 − 0.25/2 = 0.375, P_xo = −1·0.5/2 = −0.25 (per axis).
-    t = make_tracker("ekf", [0, 0], np.eye(2), **STILL)
+    off = make_tracker("ekf", [0, 0], np.eye(2), **STILL)  # by default (``walk_offset`` 0) the share is not used
+    off.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    assert not off.has_offset and off.mean[0] == pytest.approx(0.5)
+    t = make_tracker("ekf", [0, 0], np.eye(2), walk_offset=1, **STILL)
     assert not t.has_offset and t.fix_offset is None
     t.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
     assert t.has_offset
@@ -278,7 +281,7 @@ def _offset_walk(share: float | None, seed: int = 0):
     """An EKF on a straight walk north with exact steps, fixes every 2 steps carrying one offset
     (3, −2) m for the whole walk plus white noise, declared as σ² = 8 m² with ``share``."""
     rng = np.random.default_rng(seed)
-    t = make_tracker("ekf", [0, 0], np.eye(2) * 0.01)
+    t = make_tracker("ekf", [0, 0], np.eye(2) * 0.01, walk_offset=1)
     errors = []
     for k in range(1, 81):
         t.predict(Step(k, 0.7, 0.0, length_std_m=0.05, heading_std_deg=2.0))

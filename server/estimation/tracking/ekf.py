@@ -135,6 +135,13 @@ class EKFXYTracker(_EKFUpdates, Tracker):
 
 #: state length of the EKF that carries the walk's fix offset [x, y, b, s, oₓ, o_y]
 N_OFFSET = selfcal.N_AUG + 2
+#: 1: the EKF estimates the walk's fix offset from fixes that carry a walk share; 0 (default): it does
+#: not. Opt-in: on the choosing data it helped where fixes share an offset (simulator `--fixes shared`
+#: tune/stress 1.72 → 1.47 m, 4.30 → 3.81; MSFT folds 0–1, first-segment calibration 4.09 → 3.37) and
+#: on the held-out draw 544–559 (2.69 → 2.34 m, NEES 8.7 → 3.5), but failed its report on MSFT folds
+#: 2–3 (3.14 → 3.63 m, 4.09 → 4.88; one walk's offset learned wrong from its first fixes, 2.3 → 8.4 m):
+#: docs/msft-evaluation.md, "The map's walk share and the walk's fix offset"
+WALK_OFFSET = 0.0
 
 
 def offset_H(x: np.ndarray) -> np.ndarray:
@@ -166,7 +173,8 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
     fix the state grows by the walk's offset o = [oₓ, o_y], prior N(0, ρ·R), constant along the
     walk; every such fix is then z = p + o + v, v ~ N(0, (1 − ρ)·R), so the filter learns the
     walk's offset from its first fixes and keeps its dead reckoning where the fixes agree on a
-    shift. Fixes with ρ 0 or unknown (None) are z = p + v as before; a reset drops o."""
+    shift. Fixes with ρ 0 or unknown (None), or ``walk_offset`` 0 (the default, ``WALK_OFFSET``),
+    are z = p + v as before; a reset drops o."""
 
     name = "ekf"
     supports_range = True
@@ -184,11 +192,13 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
+        walk_offset: float = WALK_OFFSET,
         **grid: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q), "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
                        **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
+                       **selfcal.finite_nonnegative(walk_offset=walk_offset),
                        **selfcal.grid_params(**grid)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self.ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
@@ -208,8 +218,12 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         self.ekf.P = symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + Q)
         self._observe_grid(step)
 
+    def _share(self, fix: Fix) -> float:
+        """The share ρ of ``fix``'s R taken as the walk's offset (0 with ``walk_offset`` off)."""
+        return (fix.shared_share or 0.0) if self.params["walk_offset"] else 0.0
+
     def update(self, fix: Fix) -> None:
-        rho = fix.shared_share or 0.0
+        rho = self._share(fix)
         if rho <= 0.0:
             super().update(fix)
             return
@@ -223,7 +237,7 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         self._tidy()
 
     def fix_innovation(self, fix: Fix) -> FixInnovation:
-        rho = fix.shared_share or 0.0
+        rho = self._share(fix)
         if rho <= 0.0 or not self.has_offset:  # (before the offset exists: its prior ρR + (1 − ρ)R = R)
             return super().fix_innovation(fix)
         x, P = self.state_mean, self.state_covariance
