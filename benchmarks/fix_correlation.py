@@ -31,6 +31,7 @@ from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.scenario_family import ModelFixes, World, distance_walked, draw, located, walk  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, fit_and_validate, make_model  # noqa: E402
+from server.estimation.fingerprint.calibration import whiten  # noqa: E402
 
 #: bands of the distance walked between two fixes (m)
 BANDS = [(0.0, 2.0), (2.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 1e9)]
@@ -40,8 +41,7 @@ def walk_errors(fixes: np.ndarray, covariances: np.ndarray, truth: np.ndarray) -
     """A walk's fix errors (n, 2), the same whitened by the fixes' covariances, and the distance
     walked to each fix (n,); ``truth`` the true positions in walking order."""
     err = fixes - truth
-    white = np.stack([np.linalg.solve(np.linalg.cholesky(c), e) for c, e in zip(covariances, err, strict=True)])
-    return err, white, distance_walked(truth)
+    return err, whiten(err, covariances), distance_walked(truth)
 
 
 def msft_walks(data_dir: str, folds: int, algorithm: str):

@@ -62,7 +62,7 @@ class Candidate:
 class Fix:
     """A position estimate from one scan: mean, 2×2 covariance (m²), floor and its building.
     ``shared_share``: the share of ``covariance`` that a walk's fixes have in common — the map's
-    measured ``walk_share`` (the Kalman trackers estimate the walk's offset with it), None for a
+    measured ``walk_share`` (an EKF with ``walk_offset`` estimates the walk's offset with it), None for a
     fingerprint fix whose map did not measure it (only a PF with ``fix_bias_share`` models it),
     0 for a fix whose error is its own (a landmark snap)."""
 

@@ -27,10 +27,11 @@ independent along a walk — one phone, one body, one stretch of the map's own m
 fixes of a walk share part of their error. Where the training step holds out whole groups
 (walks or phones, `metrics.group_held_out`) it measures that share from pairs of one group's
 held-out rows at least ``WALK_SHARE_MIN_M`` apart (the part that lasts, not the map's local
-smoothness): 0.23–0.39 on the MSFT site-1 fold maps (``benchmarks/fix_correlation.py`` prints it; the
-test walks' fixes share 0.42–0.45 beyond 10 m). Every fix then
-carries it (``Fix.shared_share``), and a Kalman tracker estimates the walk's offset instead of
-taking each fix's error as new. Splits by reference point cannot see a walk: None (unknown).
+smoothness): 0.24–0.70 on the four MSFT site-1 fold maps (``benchmarks/fix_correlation.py`` prints
+them; the test walks' fixes share 0.42–0.45 beyond 10 m). Every fix then carries it
+(``Fix.shared_share``), and an EKF session with ``walk_offset`` 1 (opt-in) estimates the walk's
+offset instead of taking each fix's error as new. Splits by reference point cannot see a walk:
+None (unknown).
 """
 
 from __future__ import annotations
@@ -138,6 +139,11 @@ def fit_calibration(residuals: np.ndarray, cov: np.ndarray) -> CovarianceCalibra
     return IDENTITY if best is None else best[1]
 
 
+def whiten(residuals: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """L⁻¹r per row (LLᵀ = C, Cholesky): residuals (n, 2), covariances (n, 2, 2); |L⁻¹r|² is the NIS."""
+    return np.linalg.solve(np.linalg.cholesky(np.asarray(cov, float)), np.asarray(residuals, float)[..., None])[..., 0]
+
+
 def measure_walk_share(residuals: np.ndarray, cov: np.ndarray, groups: np.ndarray, xy: np.ndarray,
                        min_distance_m: float = WALK_SHARE_MIN_M) -> float | None:
     """The share ρ of a fix's (calibrated) covariance ``cov`` that the fixes of one group (a walk,
@@ -151,7 +157,7 @@ def measure_walk_share(residuals: np.ndarray, cov: np.ndarray, groups: np.ndarra
     r = np.asarray(residuals, float)
     c = np.asarray(cov, float)
     ok = np.isfinite(r).all(axis=1) & np.isfinite(c).all(axis=(1, 2))
-    w = np.linalg.solve(np.linalg.cholesky(c[ok]), r[ok][..., None])[..., 0]
+    w = whiten(r[ok], c[ok])
     n2 = np.einsum("ij,ij->i", w, w)
     w *= np.sqrt(np.minimum(1.0, NIS_CLIP / np.maximum(n2, 1e-300)))[:, None]
     g, p = np.asarray(groups).astype(str)[ok], np.asarray(xy, float)[ok]
