@@ -482,7 +482,8 @@ class CalibrationOut(BaseModel):
     walk_share: float | None = Field(None, ge=0, le=1, description=(
         "Share of the calibrated covariance that one device's fixes at least 10 m apart have in common "
         "(measured where each device is held out once; null otherwise). An `ekf` session with "
-        "`filter_params` `walk_offset` 1 estimates the walk's fix offset from it."))
+        "`filter_params` `walk_offset` 1 estimates the walk's fix offset from it, `walk_offset` 2 accounts for "
+        "it without estimating it (for phones whose heading is calibrated)."))
 
 
 class NisOut(BaseModel):

@@ -37,6 +37,8 @@ def test_an_ekf_session_opts_in_to_the_walk_offset(admin, device):
     opened = device.post("/api/v1/sessions", json={**body, "filter_params": {"walk_offset": 1}})
     assert opened.status_code == 201, opened.text
     assert opened.json()["filter_params"] == {"walk_offset": 1}
-    for bad in (2, 0.5):
+    considered = device.post("/api/v1/sessions", json={**body, "filter_params": {"walk_offset": 2}})
+    assert considered.status_code == 201 and considered.json()["filter_params"] == {"walk_offset": 2}
+    for bad in (3, 0.5):
         refused = device.post("/api/v1/sessions", json={**body, "filter_params": {"walk_offset": bad}})
         assert refused.status_code == 422 and "walk_offset" in refused.text, refused.text

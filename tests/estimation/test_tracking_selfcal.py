@@ -277,33 +277,66 @@ def test_ekf_first_fix_with_a_walk_share_by_hand():
     assert t.fix_innovation(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.0)).innovation[0] == pytest.approx(0.5)
 
 
-def _offset_walk(share: float | None, seed: int = 0):
+def test_ekf_considers_the_walks_offset_by_hand():
+    # ``walk_offset`` 2: the same first update as above for [x, y, b, s] and its cross-covariance with o
+    # (x = 0.5, P_xx = 0.5, P_xo = −0.25 per axis), but o is not estimated: its mean stays 0 and
+    # its covariance the prior 0.5·I (Schmidt–Kalman).
+    t = make_tracker("ekf", [0, 0], np.eye(2), walk_offset=2, **STILL)
+    t.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    np.testing.assert_allclose(t.state_mean, [0.5, 0, 0, 1, 0, 0], atol=1e-12)
+    P = t.state_covariance
+    np.testing.assert_allclose(np.diag(P), [0.5, 0.5, 0.01, 0.01, 0.5, 0.5], atol=1e-12)
+    np.testing.assert_allclose([P[0, 4], P[1, 5], P[0, 5]], [-0.25, -0.25, 0.0], atol=1e-12)
+    # the second fix at (1, 0): S = P_pp + P_po + P_op + P_oo + 0.5·I = 0.5 − 0.5 + 0.5 + 0.5 = 1;
+    # K_p = (P_pp + P_po) S⁻¹ = 0.25: x = 0.5 + 0.25·0.5; P_xx = 0.5 − 0.25²·1, P_xo = −0.25 − 0.25·(−0.25 + 0.5)
+    t.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    np.testing.assert_allclose(t.state_mean, [0.625, 0, 0, 1, 0, 0], atol=1e-12)
+    P = t.state_covariance
+    np.testing.assert_allclose([P[0, 0], P[0, 4], P[4, 4]], [0.4375, -0.3125, 0.5], atol=1e-12)
+
+
+def _offset_walk(share: float | None, seed: int = 0, walk_offset: int = 1):
     """An EKF on a straight walk north with exact steps, fixes every 2 steps carrying one offset
-    (3, −2) m for the whole walk plus white noise, declared as σ² = 8 m² with ``share``."""
+    (3, −2) m for the whole walk plus white noise, declared as σ² = 8 m² with ``share``; the
+    track's mean error and the mean NEES of its position."""
     rng = np.random.default_rng(seed)
-    t = make_tracker("ekf", [0, 0], np.eye(2) * 0.01, walk_offset=1)
-    errors = []
+    t = make_tracker("ekf", [0, 0], np.eye(2) * 0.01, walk_offset=walk_offset)
+    errors, nees = [], []
     for k in range(1, 81):
         t.predict(Step(k, 0.7, 0.0, length_std_m=0.05, heading_std_deg=2.0))
         truth = np.array([0.0, 0.7 * k])
         if k % 2 == 0:
             z = truth + [3.0, -2.0] + np.sqrt(1.6) * rng.standard_normal(2)
             t.update(Fix(float(z[0]), float(z[1]), 0, np.eye(2) * 8.0, shared_share=share))
-        errors.append(float(np.hypot(*(t.mean - truth))))
-    return t, np.mean(errors)
+        e = t.mean - truth
+        errors.append(float(np.hypot(*e)))
+        nees.append(float(e @ np.linalg.solve(t.covariance, e)))
+    return t, np.mean(errors), np.mean(nees)
 
 
 def test_ekf_learns_the_walks_fix_offset_and_keeps_to_its_steps():
     """Fixes that share one offset along the walk: taken as independent they pull the track onto
     the offset; with their walk share the EKF learns the offset and keeps to its good steps."""
-    t, err_offset = _offset_walk(0.8)
-    _, err_independent = _offset_walk(None)
+    t, err_offset, _ = _offset_walk(0.8)
+    _, err_independent, _ = _offset_walk(None)
     np.testing.assert_allclose(t.fix_offset, [3.0, -2.0], atol=1.0)
     assert err_offset < 0.5 * err_independent, (err_offset, err_independent)
 
 
-def test_ekf_with_the_walk_offset_survives_json_exactly_and_a_reset_drops_it():
-    t, _ = _offset_walk(0.8)
+def test_ekf_considering_the_walks_offset_knows_what_its_fixes_cannot_tell():
+    """The same walk, the offset considered (``walk_offset`` 2): never learned, so the track is
+    not corrected as far, but the covariance keeps the part the fixes share — the EKF that takes
+    them as independent believes their offset many times over (NEES far above 2)."""
+    t, err_considered, nees_considered = _offset_walk(0.8, walk_offset=2)
+    _, err_independent, nees_independent = _offset_walk(None)
+    np.testing.assert_array_equal(t.fix_offset, [0.0, 0.0])
+    assert err_considered < err_independent, (err_considered, err_independent)
+    assert nees_independent > 10.0 and nees_considered < 4.0, (nees_independent, nees_considered)
+
+
+@pytest.mark.parametrize("walk_offset", [1, 2])
+def test_ekf_with_the_walk_offset_survives_json_exactly_and_a_reset_drops_it(walk_offset):
+    t, _, _ = _offset_walk(0.8, walk_offset=walk_offset)
     restored = tracker_from_dict(json.loads(json.dumps(t.to_dict())))
     assert restored.has_offset
     for tracker in (t, restored):

@@ -135,13 +135,16 @@ class EKFXYTracker(_EKFUpdates, Tracker):
 
 #: state length of the EKF that carries the walk's fix offset [x, y, b, s, oₓ, o_y]
 N_OFFSET = selfcal.N_AUG + 2
-#: 1: the EKF estimates the walk's fix offset from fixes that carry a walk share; 0 (default): it does
-#: not. Opt-in: on the choosing data it helped where fixes share an offset (simulator `--fixes shared`
-#: tune/stress 1.72 → 1.47 m, 4.30 → 3.81; MSFT folds 0–1, first-segment calibration 4.09 → 3.37) and
-#: on the held-out draw 544–559 (2.69 → 2.34 m, NEES 8.7 → 3.5), but failed its report on MSFT folds
-#: 2–3 (3.14 → 3.63 m, 4.09 → 4.88; one walk's offset learned wrong from its first fixes, 2.3 → 8.4 m):
-#: docs/msft-evaluation.md, "The map's walk share and the walk's fix offset"
+#: 1: the EKF estimates the walk's fix offset from fixes that carry a walk share; 2: it considers the
+#: offset without estimating it; 0 (default): neither. Both opt-in (docs/msft-evaluation.md, "The
+#: map's walk share and the walk's fix offset" and "The walk's fix offset considered"): 1 failed its
+#: report on MSFT folds 2–3 (3.14 → 3.63 m, 4.09 → 4.88: one walk's offset learned wrong from its first
+#: fixes); 2 takes a calibrated phone's EKF below its own PDR on both halves (folds 0–1 4.09 → 3.18 m
+#: against PDR 3.23, folds 2–3 3.14 → 2.84 against 3.21) but a site-calibrated one from 4.09 to 5.24 on
+#: folds 2–3 (fixes known to share their error correct a compass 45° off too slowly)
 WALK_OFFSET = 0.0
+#: ``walk_offset`` 2: the walk's fix offset is *considered* (Schmidt–Kalman), not estimated
+CONSIDER_OFFSET = 2.0
 
 
 def offset_H(x: np.ndarray) -> np.ndarray:
@@ -173,8 +176,11 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
     fix the state grows by the walk's offset o = [oₓ, o_y], prior N(0, ρ·R), constant along the
     walk; every such fix is then z = p + o + v, v ~ N(0, (1 − ρ)·R), so the filter learns the
     walk's offset from its first fixes and keeps its dead reckoning where the fixes agree on a
-    shift. Fixes with ρ 0 or unknown (None), or ``walk_offset`` 0 (the default, ``WALK_OFFSET``),
-    are z = p + v as before; a reset drops o."""
+    shift. With ``walk_offset`` 2 (``CONSIDER_OFFSET``) o is *considered*, not estimated
+    (Schmidt–Kalman, `_hold_offset`): the filter knows what the walk's fixes have in common, so a
+    run of them stops shrinking its covariance as if each were new, but it never learns an offset
+    the first fixes' noise could fake. Fixes with ρ 0 or unknown (None), or ``walk_offset`` 0 (the
+    default, ``WALK_OFFSET``), are z = p + v as before; a reset drops o."""
 
     name = "ekf"
     supports_range = True
@@ -201,6 +207,7 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
                        **selfcal.finite_nonnegative(walk_offset=walk_offset),
                        **selfcal.grid_params(**grid)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
+        self._offset_prior: np.ndarray | None = None
         self.ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)
         self.ekf.x, self.ekf.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)
 
@@ -217,6 +224,18 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         self.ekf.x = x_new
         self.ekf.P = symmetric(F @ self.ekf.P @ F.T + (G * [vd, vh]) @ G.T + Q)
         self._observe_grid(step)
+        self._hold_offset()
+
+    def _hold_offset(self) -> None:
+        """With ``walk_offset`` 2 (consider) the walk's offset is accounted for, never estimated:
+        after every update its mean is 0 again and its covariance its prior, while the position's
+        cross-covariance with it keeps what the fixes had in common (Schmidt–Kalman)."""
+        if self.params["walk_offset"] != CONSIDER_OFFSET or self._offset_prior is None:
+            return
+        x, P = np.array(self.ekf.x, float).reshape(-1), np.array(self.ekf.P, float)
+        x[4:] = 0.0
+        P[4:, 4:] = self._offset_prior
+        self.ekf.x, self.ekf.P = x, P
 
     def _share(self, fix: Fix) -> float:
         """The share ρ of ``fix``'s R taken as the walk's offset (0 with ``walk_offset`` off)."""
@@ -257,11 +276,16 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
         super()._set_state(x, P)
         n = len(self.ekf.x)
-        self.ekf.dim_x, self.ekf._I = n, np.eye(n)  # (filterpy's update: P = (I − KH)P(I − KH)ᵀ + KRKᵀ)
+        self.ekf.dim_x, self.ekf._I = n, np.eye(n)
+        if n != N_OFFSET:
+            self._offset_prior = None
+        elif self._offset_prior is None:  # the offset's prior (a stored consider state keeps it there)
+            self._offset_prior = np.asarray(P, float)[4:, 4:].copy()  # (filterpy's update: P = (I − KH)P(I − KH)ᵀ + KRKᵀ)
 
     def _tidy(self) -> None:
         self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(-1))
         self.ekf.P = symmetric(np.asarray(self.ekf.P, float))
+        self._hold_offset()
 
     @property
     def _kf(self) -> ExtendedKalmanFilter:

@@ -54,8 +54,8 @@ TUNABLE: dict[str, Tunable] = {
     "fix_bias_steps": Tunable(1.0, 10_000.0, "steps, correlation length of the fixes' shared error (pf)"),
     "fix_bias_switch": Tunable(0.0, 0.5, "probability per step that a particle's hypothesis of the fixes' shared "
                                "error flips (pf; 0: the share is not learned)"),
-    "walk_offset": Tunable(0, 1, "1: estimate the walk's fix offset from fixes that carry the map's walk share "
-                           "(ekf)", integer=True),
+    "walk_offset": Tunable(0, 2, "1: estimate the walk's fix offset from fixes that carry the map's walk share, "
+                           "2: account for it without estimating it (ekf)", integer=True),
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
                             "after a fix or beacon range (pf, no plan)"),
     "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, per straight run "
