@@ -295,6 +295,18 @@ def test_ekf_considers_the_walks_offset_by_hand():
     np.testing.assert_allclose([P[0, 0], P[0, 4], P[4, 4]], [0.4375, -0.3125, 0.5], atol=1e-12)
 
 
+def test_inflating_an_ekf_that_considers_the_offset_widens_the_tracker_not_the_fixes():
+    t = make_tracker("ekf", [0, 0], np.eye(2), walk_offset=2, **STILL)
+    t.update(Fix(1.0, 0.0, 0, np.eye(2), shared_share=0.5))
+    before = t.state_covariance
+    t.inflate(4.0)
+    P = t.state_covariance
+    np.testing.assert_allclose(P[:4, :4], 4.0 * before[:4, :4], atol=1e-12)
+    np.testing.assert_allclose(P[4:, 4:], 0.5 * np.eye(2), atol=1e-12)  # the prior, as before
+    np.testing.assert_allclose(P[:4, 4:], 2.0 * before[:4, 4:], atol=1e-12)
+    assert np.linalg.eigvalsh(P).min() > -1e-12
+
+
 def _offset_walk(share: float | None, seed: int = 0, walk_offset: int = 1):
     """An EKF on a straight walk north with exact steps, fixes every 2 steps carrying one offset
     (3, −2) m for the whole walk plus white noise, declared as σ² = 8 m² with ``share``; the

@@ -296,4 +296,12 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         self._set_state(*selfcal.reset_position(x, P, as_mean(mean), as_cov(cov)))
 
     def inflate(self, factor: float) -> None:
-        self.ekf.P = self.state_covariance * float(factor)
+        """P × ``factor``; a considered offset (``walk_offset`` 2) is the fixes', not the tracker's:
+        its covariance stays and the cross-covariance grows by √factor (D P D, D = diag(√f·I, I):
+        still positive semi-definite)."""
+        P = self.state_covariance * float(factor)
+        if self.params["walk_offset"] == CONSIDER_OFFSET and self._offset_prior is not None:
+            P[:4, 4:] /= math.sqrt(float(factor))
+            P[4:, :4] /= math.sqrt(float(factor))
+            P[4:, 4:] = self._offset_prior
+        self.ekf.P = P
