@@ -359,10 +359,14 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
     session = await device.open_session(site_id, flt, init, seed=seed, filter_params=filter_params)
     batches = make_batches(steps, p.scans if scans else [], w.t_start, w.t_end, interval_s)
     batch_rows = []
+    sent = refused = 0
     for b in batches:
-        res = await device.post_batch(session["id"], b.to_api())
+        body = b.to_api()
+        res = await device.post_batch(session["id"], body)
         e = res["estimate"]
         batch_rows.append((e["t"], e["x"], e["y"]))
+        sent += len(body.get("scans") or [])
+        refused += len(res.get("rejected_fixes") or [])
     track = await device.get_track(session["id"])
     after = await device.get_track(session["id"], smoothed=True) if smoothed else None
     await device.close_session(session["id"])
@@ -372,7 +376,8 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
                                   if e.get("source") != "init"])
 
     return {"session_id": session["id"], "batches": len(batches), "track": scored(track),
-            "smoothed": None if after is None else scored(after), "batch_estimates": errors_against(w, batch_rows)}
+            "smoothed": None if after is None else scored(after), "batch_estimates": errors_against(w, batch_rows),
+            "scans_sent": sent, "fixes_refused": refused}
 
 
 @dataclass
@@ -484,6 +489,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                 "heading_std_deg": site_cal["heading_white_std_deg" if opt.step_noise == "white" else "heading_std_deg"]}
             steps = steps_from_events(p.events, cal["weinberg_k"], cal["heading_offset_deg"], **noise)
             methods: dict[str, list[dict]] = {}
+            refused: dict[str, list[int]] = {}  # method: [fixes the gate refused, scans sent]
             async with sem:
                 methods["pdr-only"] = errors_against(w, dead_reckon(steps, w.waypoints[0, 1:], w.t_start)[1:])
                 methods["fingerprint-only"] = await fingerprint_only(device, fmap["site_id"], p)
@@ -504,6 +510,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                             break
                         raise
                     methods[name] = res["track"]
+                    refused[name] = [res["fixes_refused"], res["scans_sent"]]
                     if res["smoothed"] is not None:
                         methods[f"{name} smoothed"] = res["smoothed"]
             methods = {k: [r for r in v if r["t"] > eval_from] for k, v in methods.items()}
@@ -514,7 +521,7 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                          f"{k} {summarise(r['error_m'] for r in v)['mean']}" for k, v in methods.items()))
             return {"walk": w.name, "duration_s": round(w.t_end - w.t_start, 1), "length_m": round(true_len, 1),
                     "steps": n_steps, "scans": len(p.scans), "calibration": cal, "eval_from_t": eval_from,
-                    "methods": methods}
+                    "methods": methods, "refused": refused}
 
         walks = await asyncio.gather(*(one_walk(p) for p in tests))
 
@@ -532,6 +539,9 @@ def tabulate(walks: list[dict]) -> tuple[dict, dict]:
     for k in names:
         rows = [r for w in walks for r in w["methods"].get(k, [])]
         table[k] = summarise(r["error_m"] for r in rows) | consistency(rows)
+        counts = [w["refused"][k] for w in walks if k in w.get("refused", {})]
+        if counts and sum(c[1] for c in counts):
+            table[k]["refused_pct"] = round(100.0 * sum(c[0] for c in counts) / sum(c[1] for c in counts), 1)
     per_walk = {w["walk"]: {k: summarise(r["error_m"] for r in v)["mean"] for k, v in w["methods"].items()}
                 for w in walks}
     return table, per_walk
@@ -550,11 +560,12 @@ def combine_folds(results: list[dict], fold_ids: list[int] | None = None) -> dic
 
 
 def markdown(result: dict) -> str:
-    lines = ["| method | estimates | mean m | p50 m | p90 m | max m | NEES mean | NEES p50 |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | estimates | mean m | p50 m | p90 m | max m | NEES mean | NEES p50 | scans refused |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for k, s in sorted(result["table"].items(), key=lambda kv: (kv[1]["mean"] is None, kv[1]["mean"] or 0)):
+        refused = f"{s['refused_pct']} %" if "refused_pct" in s else "—"
         lines.append(f"| {k} | {s['n']} | {s['mean']} | {s['p50']} | {s['p90']} | {s['max']} | "
-                     f"{s.get('nees_mean', '—')} | {s.get('nees_p50', '—')} |")
+                     f"{s.get('nees_mean', '—')} | {s.get('nees_p50', '—')} | {refused} |")
     names = list(result["table"])
     per = result["per_walk_mean"]
     lines += ["", f"Walks (of {len(per)}) where a method's mean error is below PDR alone / fingerprinting alone:", ""]

@@ -252,6 +252,20 @@ def test_tables_from_walk_results():
     assert md.splitlines()[2].startswith("| pdr-only | 3 | 2.0 |")  # best mean first
 
 
+def test_tables_give_the_share_of_scans_the_gate_refused():
+    """Each walk records, per tracked method, [fixes refused, scans sent]; the table pools them
+    over walks (3 of 40 = 7.5 %), and methods that send no scans show none."""
+    from client_sim.msft_eval import markdown, tabulate
+
+    walks = [{"walk": name, "methods": {"pdr-only": [{"t": 0, "error_m": 1.0}], "ekf": [{"t": 0, "error_m": 2.0}]},
+              "refused": {"ekf": counts}} for name, counts in (("a", [1, 10]), ("b", [2, 30]))]
+    table, _ = tabulate(walks)
+    assert table["ekf"]["refused_pct"] == 7.5 and "refused_pct" not in table["pdr-only"]
+    rows = markdown({"table": table, "per_walk_mean": {}}).splitlines()
+    assert rows[0].endswith("| scans refused |")
+    assert rows[2].startswith("| pdr-only |") and rows[2].endswith("| — |") and rows[3].endswith("| 7.5 % |")
+
+
 def test_errors_against_scores_nees_when_the_estimate_has_a_covariance():
     """An estimate 3 m east of the truth with σ = 1.5 m on x: NEES (3/1.5)² = 4; without a
     covariance, no NEES; ``consistency`` averages the rows that have one."""
