@@ -230,12 +230,17 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         """With ``walk_offset`` 2 (consider) the walk's offset is accounted for, never estimated:
         after every update its mean is 0 again and its covariance its prior, while the position's
         cross-covariance with it keeps what the fixes had in common (Schmidt–Kalman)."""
-        if self.params["walk_offset"] != CONSIDER_OFFSET or self._offset_prior is None:
+        if not self._considers_offset:
             return
         x, P = np.array(self.ekf.x, float).reshape(-1), np.array(self.ekf.P, float)
         x[4:] = 0.0
         P[4:, 4:] = self._offset_prior
         self.ekf.x, self.ekf.P = x, P
+
+    @property
+    def _considers_offset(self) -> bool:
+        """Whether the state carries an offset that is considered (``walk_offset`` 2), not estimated."""
+        return self.params["walk_offset"] == CONSIDER_OFFSET and self._offset_prior is not None
 
     def _share(self, fix: Fix) -> float:
         """The share ρ of ``fix``'s R taken as the walk's offset (0 with ``walk_offset`` off)."""
@@ -276,11 +281,11 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
     def _set_state(self, x: np.ndarray, P: np.ndarray) -> None:
         super()._set_state(x, P)
         n = len(self.ekf.x)
-        self.ekf.dim_x, self.ekf._I = n, np.eye(n)
+        self.ekf.dim_x, self.ekf._I = n, np.eye(n)  # (filterpy's update: P = (I − KH)P(I − KH)ᵀ + KRKᵀ)
         if n != N_OFFSET:
             self._offset_prior = None
         elif self._offset_prior is None:  # the offset's prior (a stored consider state keeps it there)
-            self._offset_prior = np.asarray(P, float)[4:, 4:].copy()  # (filterpy's update: P = (I − KH)P(I − KH)ᵀ + KRKᵀ)
+            self._offset_prior = np.asarray(P, float)[4:, 4:].copy()
 
     def _tidy(self) -> None:
         self.ekf.x = selfcal.clamp(np.asarray(self.ekf.x, float).reshape(-1))
@@ -300,8 +305,8 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         its covariance stays and the cross-covariance grows by √factor (D P D, D = diag(√f·I, I):
         still positive semi-definite)."""
         P = self.state_covariance * float(factor)
-        if self.params["walk_offset"] == CONSIDER_OFFSET and self._offset_prior is not None:
+        if self._considers_offset:
             P[:4, 4:] /= math.sqrt(float(factor))
             P[4:, :4] /= math.sqrt(float(factor))
-            P[4:, 4:] = self._offset_prior
         self.ekf.P = P
+        self._hold_offset()
