@@ -10,7 +10,9 @@ corridor loop with WiFi APs and iBeacons placed at random around it, a log-dista
 radio with a fixed spatial shadowing field per transmitter, body shadowing (a
 transmitter behind the walker is weaker) and per-scan noise; a fingerprint model
 (``--algorithm``) fitted as the server's training job fits it (held-out validation and a
-calibrated covariance) on a survey every 2 m of the loop (3 scans per point, averaged); a walker whose PDR has a
+calibrated covariance) on a survey every 2 m of the loop (3 scans per point, averaged), whose
+positions also give the floor its grid direction as the server's training measures it
+(``building_grid.survey_grids``: the sessions' heading reference on a floor without a plan); a walker whose PDR has a
 heading bias that drifts linearly, a step-length bias and white noise, and who sends
 steps **without** std fields (the server's defaults apply).
 
@@ -60,6 +62,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from server.estimation.building_grid import survey_grids  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
 from server.estimation.floorplan import Walkable  # noqa: E402
@@ -188,11 +191,19 @@ class World:
         strips = [(-c, -c, W + c, c), (-c, H - c, W + c, H + c), (-c, -c, c, H + c), (W - c, -c, W + c, H + c)]
         return walls, Walkable([[[x0, y0], [x1, y0], [x1, y1], [x0, y1]] for x0, y0, x1, y1 in strips])
 
+    def survey_points(self) -> np.ndarray:
+        """Where the survey stands: every 2 m along the loop."""
+        return np.array([self.loop_point(float(u)) for u in np.arange(0.0, 2 * (self.sc.width_m + self.sc.height_m), 2.0)])
+
+    def grids(self) -> dict[tuple[int, int], float]:
+        """The floor's grid as the server's training measures it from this survey (``building_grid``)."""
+        xy = self.survey_points()
+        return {(g.building, g.floor): g.deg for g in survey_grids(np.zeros(len(xy)), np.zeros(len(xy)), xy[:, 0], xy[:, 1])}
+
     def model(self, algorithm: str = "knn"):
         rng = np.random.default_rng(self.sc.seed + 2)
         rows = []
-        for u in np.arange(0.0, 2 * (self.sc.width_m + self.sc.height_m), 2.0):
-            p = self.loop_point(float(u))
+        for p in self.survey_points():
             scans = [self.rss(p, None, rng) for _ in range(3)]
             keys = set().union(*scans)
             rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
@@ -399,6 +410,7 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
         fixes = ModelFixes(world.model(ALGORITHM[0]), cov_scale)
         site = world.site()
     fp = [float(np.hypot(f.x - p[0], f.y - p[1])) for f, p in located(w, fixes)]
+    site = replace(site, grids=world.grids())
     if CORRIDOR_M[0] is not None:
         walls, walkable = world.plan(CORRIDOR_M[0])
         site = replace(site, walls={(0, 0): walls}, walkable={(0, 0): walkable})

@@ -491,6 +491,20 @@ class NisOut(BaseModel):
     median: float | None
 
 
+class SurveyGridOut(BaseModel):
+    building: int = 0
+    floor: int
+    deg: float = Field(description=(
+        "The direction the floor's corridors run in, mod 90° (degrees clockwise from +y, in [−45, 45)), "
+        "measured from the survey: the surveyors' moves between consecutive fingerprints of one device "
+        "(`source` `walks`), else each surveyed position's nearest others (`points`). On a floor whose "
+        "walls give no grid, `ekf`, `ukf` and `skpf` sessions observe their heading bias on straight runs "
+        "near it."))
+    resultant: float = Field(description="How strongly the segments agree mod 90° (1: all along the grid; kept from 0.3).")
+    segments: int
+    source: Literal["walks", "points"]
+
+
 class ModelMetrics(BaseModel):
     mean_error_m: float | None = None
     p50_error_m: float | None = None
@@ -510,6 +524,8 @@ class ModelMetrics(BaseModel):
     nis_raw: NisOut | None = Field(None, description="Held-out NIS rᵀC⁻¹r before calibration (calibrated: mean 2).")
     nis_calibrated: NisOut | None = Field(None, description="Held-out NIS after calibration.")
     activation: ActivationOut | None = Field(None, description="Whether training activated the model, and why.")
+    survey_grid: list[SurveyGridOut] | None = Field(None, description=(
+        "The floors whose survey shows a grid (extension); absent for a model trained before it was measured."))
 
 
 class HeldOutPointErrorOut(BaseModel):

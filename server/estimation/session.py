@@ -243,9 +243,10 @@ class SessionEstimator:
 
     def _use_plan(self, site: SiteMap) -> None:
         """The floor plan comes from the site, not from the stored state: the tracker's floor's
-        walls (set when they are not the ones it has) and walkable area (a PF kills particles
-        outside it; every estimate is reported inside it, ``_record``). A plan imported while a
-        session is open applies at its next input."""
+        walls (set when they are not the ones it has), walkable area (a PF kills particles
+        outside it; every estimate is reported inside it, ``_record``) and the grid its survey
+        shows (a heading reference where the walls give none). A plan imported while a session is
+        open applies at its next input."""
         if self.tracker is None or self.floors is None:
             return
         building, level = building_level(self.floors.floor)
@@ -254,6 +255,7 @@ class SessionEstimator:
             self.tracker.set_walls(walls)
             self._plan_walls = walls
         self.tracker.set_walkable(site.walkable.get((building, level)))
+        self.tracker.set_survey_grid(site.grids.get((building, level)))
 
     def _fix(self, scan: Scan, fixes: FixSource, site: SiteMap) -> Fix:
         """The scan's fix; a session's first fix is the cold-start fusion (DESIGN.md): fingerprint

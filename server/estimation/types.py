@@ -179,12 +179,16 @@ class Beacon:
 
 @dataclass(frozen=True)
 class SiteMap:
-    """What a tracker knows of a site: positioned transmitters by id and walls by (building, level)."""
+    """What a tracker knows of a site: positioned transmitters by id; walls, walkable area and the
+    survey's grid direction by (building, level)."""
 
     beacons: dict[str, Beacon] = field(default_factory=dict)
     walls: dict[tuple[int, int], list] = field(default_factory=dict)
     #: walkable area by (building, level), a ``floorplan.Walkable``; a floor without one is unconstrained
     walkable: dict[tuple[int, int], Any] = field(default_factory=dict)
+    #: grid direction (degrees, mod 90°) by (building, level) measured from the survey
+    #: (``building_grid.survey_grids``); used where the floor's walls give none
+    grids: dict[tuple[int, int], float] = field(default_factory=dict)
 
     def walls_of(self, level: int, building: int = 0) -> list:
         return self.walls.get((building, level), [])

@@ -1,8 +1,9 @@
 """What fixes on a site depend on, cached per process and checked against the site's revision.
 
-A tracking batch needs the site's positioned transmitters, its settings, its floors'
-walls and the model that serves it. Reading those costs more than the rest of a batch,
-yet they change only on admin actions, each of which gives the site a new revision
+A tracking batch needs the site's positioned transmitters, its settings, its floors' walls
+and walkable areas, the model that serves it and the grid directions that model's survey
+showed. Reading those costs more than the rest of a batch, yet they change only on admin
+actions, each of which gives the site a new revision
 (``Site.revision``). The batch reads the revision with the session row, in the same
 statement, so a cached context is used only while it is exactly current: a change made
 through any process is seen by the next batch of every process.
@@ -28,7 +29,7 @@ from server.store import sites as store
 class SiteContext:
     revision: str
     settings: dict[str, Any]
-    #: positioned transmitters and walls, as the tracker sees them
+    #: positioned transmitters, walls, walkable areas and survey grids, as the tracker sees them
     map: SiteMap
     #: the site's active model, when it is ready (a session pinned to a model asks for it)
     active_model: ServingModel | None
@@ -53,6 +54,7 @@ class SiteContexts:
             found = store.site_context(s, site_id)
             active = model_store.serving_model(s.connection(), site_id, None)
             walkable = plan_store.walkable_areas(s, site_id)
+            grids = {} if active is None else model_store.survey_grids(s, active.model_id)
         if found is None:
             raise NotFound(f"site {site_id} does not exist")
         return SiteContext(
@@ -66,6 +68,7 @@ class SiteContexts:
                 },
                 walls={floor: list(walls) for floor, walls in found.walls.items()},
                 walkable=usable_areas(walkable),
+                grids=grids,
             ),
             active_model=None if active is None else active.ready(),
         )

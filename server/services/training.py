@@ -4,8 +4,9 @@ A `TrainingWorker` thread claims queued jobs from the database (a compare-and-se
 several server processes can each run a worker) and runs each in a child process, so
 a long fit never holds the request-serving process's interpreter (GIL) or memory. The child loads the
 site's fingerprints, measures the model on a bounded held-out sample (and calibrates
-its covariance there), refits on everything, and stores the artifact, its SHA-256 and
-the metrics in one transaction. Whether the model becomes the site's active one is
+its covariance there), refits on everything, measures each floor's grid from the survey
+(``building_grid``: the sessions' heading reference where a floor has no plan), and stores the
+artifact, its SHA-256 and the metrics in one transaction. Whether the model becomes the site's active one is
 decided in that same transaction (`decide_activation`: by default the first ready
 model of a site; ``if_better`` also one whose held-out error is no worse).
 """
@@ -29,6 +30,7 @@ from sqlalchemy.exc import IntegrityError
 
 from server.db import Database
 from server.domain import Activation, FingerprintRecord, ModelInfo, ModelSpec, Transmitter
+from server.estimation.building_grid import survey_grids
 from server.estimation.fingerprint import FingerprintSet, checksum, fit_and_validate, make_model, to_bytes
 from server.estimation.fingerprint.metrics import PointError, Validation
 from server.store import models as store
@@ -79,6 +81,8 @@ def run_training_job(database_url: str, model_id: int) -> str:
         trained_on = len(fs)
         try:
             model, metrics = _fit(fs if trained_on else None, spec, transmitters)
+            if metrics is not None:
+                metrics["survey_grid"] = [asdict(g) for g in survey_grids(fs.building, fs.floor, fs.x, fs.y, fs.device, fs.t)]
             del fs
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin

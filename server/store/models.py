@@ -110,6 +110,13 @@ def serving_model(conn: Connection, site_id: int, model_id: int | None) -> Servi
     return None if row is None else ServingCandidate(row[0], row[1], cast(ModelStatus, row[2]), row[3])
 
 
+def survey_grids(s: Session, model_id: int) -> dict[tuple[int, int], float]:
+    """The grid direction (degrees) of each floor the model's survey showed one on, by (building,
+    floor): its ``metrics.survey_grid`` (none for a model trained before it was measured)."""
+    metrics = s.scalar(select(Model.metrics).where(Model.id == model_id)) or {}
+    return {(int(g["building"]), int(g["floor"])): float(g["deg"]) for g in metrics.get("survey_grid") or []}
+
+
 def model_artifact(s: Session, model_id: int) -> Artifact | None:
     row = s.execute(
         select(ModelArtifact.sha256, ModelArtifact.blob).where(ModelArtifact.model_id == model_id)

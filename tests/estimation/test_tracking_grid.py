@@ -9,8 +9,10 @@ import math
 import numpy as np
 import pytest
 
+from server.estimation import building_grid
+from server.estimation.session import SessionEstimator
 from server.estimation.tracking import make_tracker, selfcal, tracker_from_dict
-from server.estimation.types import Step
+from server.estimation.types import SiteMap, Step
 
 GAUSSIAN = ["ekf", "ukf", "skpf"]
 #: a corridor along x and a cross corridor along y: a grid at 0°
@@ -35,15 +37,15 @@ def walk(t, headings, start: int = 0) -> list[float]:
 
 @pytest.mark.parametrize("deg", [0.0, 10.8, 30.0, -40.0])
 def test_the_grid_direction_of_rotated_rectilinear_walls(deg):
-    got = selfcal.grid_direction_deg(np.array(rotated(WALLS, deg)))
+    got = building_grid.grid_direction_deg(np.array(rotated(WALLS, deg)))
     assert got is not None
     assert selfcal.wrap_deg(got - deg, 90.0) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_walls_at_every_angle_have_no_grid():
     walls = np.array([[0.0, 0.0, math.sin(a), math.cos(a)] for a in np.linspace(0, math.pi, 13)[:-1]])
-    assert selfcal.grid_direction_deg(walls) is None
-    assert selfcal.grid_direction_deg(np.zeros((0, 4))) is None
+    assert building_grid.grid_direction_deg(walls) is None
+    assert building_grid.grid_direction_deg(np.zeros((0, 4))) is None
 
 
 def test_a_straight_run_grows_until_the_walker_turns():
@@ -106,6 +108,50 @@ def test_a_run_far_from_the_grid_or_a_floor_without_walls_observes_nothing(name)
         walk(ref, [heading] * 20)
         np.testing.assert_array_equal(t.state_mean, ref.state_mean)
         np.testing.assert_array_equal(t.state_covariance, ref.state_covariance)
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_floor_without_walls_takes_the_grid_its_survey_shows(name):
+    # No plan: the floor's grid measured from its survey (set by the session) observes the bias
+    # exactly as the same grid's walls would.
+    surveyed = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, seed=0, **ON)
+    surveyed.set_survey_grid(0.0)
+    walled = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
+    walk(surveyed, [102.0] * 30)
+    walk(walled, [102.0] * 30)
+    assert surveyed.heading_bias_deg == pytest.approx(-12.0, abs=1.5)
+    np.testing.assert_allclose(surveyed.state_mean, walled.state_mean, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(surveyed.state_covariance, walled.state_covariance, rtol=1e-12, atol=1e-15)
+
+
+class NoFixes:
+    def fix(self, scan, near):  # pragma: no cover - the walk has no scans
+        raise AssertionError("no scan in this walk")
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_a_session_gives_its_tracker_the_survey_grid_of_its_floor(name):
+    steps = [Step(float(k), 0.7, 102.0, 0.05, 2.0) for k in range(30)]
+    learned = {}
+    for label, grids in (("this floor", {(0, 0): 0.0}), ("another floor", {(0, 1): 0.0})):
+        est = SessionEstimator(name, seed=1, tracker_params=ON)
+        est.start([0.0, 1.5], np.eye(2) * 0.1, 0, [], None, "init")
+        for k in range(0, 30, 6):  # stored and loaded between batches, as the server does
+            est = SessionEstimator.from_dict(json.loads(json.dumps(est.to_dict())))
+            est.apply_batch(steps[k:k + 6], [], NoFixes(), SiteMap(grids=grids))
+        learned[label] = est.tracker.heading_bias_deg
+    assert learned["this floor"] == pytest.approx(-12.0, abs=1.5)
+    assert abs(learned["another floor"]) < 1e-9
+
+
+@pytest.mark.parametrize("name", GAUSSIAN)
+def test_the_walls_grid_comes_before_the_surveys_and_neither_is_stored(name):
+    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
+    t.set_survey_grid(30.0)  # a survey that disagrees with the plan: the plan's walls decide
+    walk(t, [102.0] * 8)
+    assert t.heading_bias_deg == pytest.approx(-12.0, abs=1.5)
+    restored = tracker_from_dict(json.loads(json.dumps(t.to_dict(walls=False))))
+    assert restored.survey_grid_deg is None  # it comes from the site before every input, as the walls do
 
 
 @pytest.mark.parametrize("name", GAUSSIAN)

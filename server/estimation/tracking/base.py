@@ -163,6 +163,9 @@ class Tracker(ABC):
         self.params: dict[str, Any] = {}
         #: the floor's walkable area (None: unconstrained); set by the session, not stored
         self.walkable: Walkable | None = None
+        #: the floor's grid direction measured from its survey (degrees; None: none), for a floor
+        #: whose walls give none; set by the session, not stored (``building_grid``)
+        self.survey_grid_deg: float | None = None
 
     # -- the filter ---------------------------------------------------------------
     @abstractmethod
@@ -214,6 +217,11 @@ class Tracker(ABC):
         """The floor's walkable area from the next input on (None: none). The PF kills particles
         outside it; for every tracker the session reports its estimates inside it."""
         self.walkable = walkable
+
+    def set_survey_grid(self, deg: float | None) -> None:
+        """The floor's grid direction from its survey (None: none) from the next input on; the
+        self-calibrating filters take it as a heading reference where the walls give no grid."""
+        self.survey_grid_deg = None if deg is None else float(deg)
 
     def search_region(self) -> tuple[float, float, float, float] | None:
         """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its

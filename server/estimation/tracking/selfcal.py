@@ -29,6 +29,7 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
+from server.estimation.building_grid import grid_direction_deg
 from server.estimation.types import Step
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
@@ -55,8 +56,6 @@ GRID_GATE_DEG = 20.0
 GRID_STEPS = 8
 #: a straight run: consecutive steps whose reported heading stays within this of the run's mean (degrees)
 STRAIGHT_DEG = 10.0
-#: walls have a grid when the resultant of their length-weighted 4θ is at least this
-GRID_MIN_RESULTANT = 0.4
 
 
 def finite_nonnegative(**values: float) -> dict[str, float]:
@@ -82,22 +81,6 @@ def grid_params(grid_sigma_deg: float = GRID_SIGMA_DEG, grid_gate_deg: float = G
     out = finite_nonnegative(grid_sigma_deg=grid_sigma_deg, grid_gate_deg=grid_gate_deg, grid_steps=grid_steps)
     out["grid_steps"] = float(max(1, round(out["grid_steps"])))
     return out
-
-
-def grid_direction_deg(walls: np.ndarray) -> float | None:
-    """The walls' grid direction in [−45°, 45°) (headings as a step's: clockwise from +y), or None
-    when they have none: the length-weighted circular mean of 4θ over the walls, /4, whose
-    resultant is at least ``GRID_MIN_RESULTANT`` (a rectilinear floor's walls agree mod 90°)."""
-    if len(walls) == 0:
-        return None
-    dx, dy = walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1]
-    length = np.hypot(dx, dy)
-    total = float(length.sum())
-    theta4 = 4.0 * np.arctan2(dx, dy)
-    c, s = float(length @ np.cos(theta4)), float(length @ np.sin(theta4))
-    if total <= 0 or math.hypot(c, s) < GRID_MIN_RESULTANT * total:
-        return None
-    return math.degrees(math.atan2(s, c)) / 4.0
 
 
 Angle = TypeVar("Angle", float, np.ndarray)
@@ -239,6 +222,7 @@ class Calibrating:
     augmented = True
     params: dict[str, Any]
     walls: np.ndarray
+    survey_grid_deg: float | None
     _run = StraightRun()
     #: the grid direction of the walls it was computed for (``grid_direction_deg`` reads every wall)
     _grid_walls: np.ndarray | None = None
@@ -249,8 +233,9 @@ class Calibrating:
 
     def _grid_offset(self, step: Step) -> float | None:
         """Extend the straight run by ``step``; when an observation of the grid is due (the run has
-        grown by ``grid_steps``, ``grid_sigma_deg`` > 0, the walls have a grid), the grid direction
-        minus the run's mean heading (degrees, to be wrapped with b mod 90°), else None."""
+        grown by ``grid_steps``, ``grid_sigma_deg`` > 0, the floor has a grid: its walls', else its
+        survey's, ``Tracker.survey_grid_deg``), the grid direction minus the run's mean heading
+        (degrees, to be wrapped with b mod 90°), else None."""
         p = self.params
         if p["grid_sigma_deg"] <= 0:
             return None
@@ -259,9 +244,10 @@ class Calibrating:
             return None
         if self._grid_walls is not self.walls:
             self._grid_walls, self._grid_deg = self.walls, grid_direction_deg(self.walls)
-        if self._grid_deg is None:
+        grid = self._grid_deg if self._grid_deg is not None else self.survey_grid_deg
+        if grid is None:
             return None
-        return self._grid_deg - self._run.mean_deg
+        return grid - self._run.mean_deg
 
     def _observe_grid(self, step: Step) -> None:
         """Heuristic drift elimination per straight run (``grid_sigma_deg`` > 0, on a floor whose
