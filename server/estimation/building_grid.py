@@ -11,8 +11,9 @@ Two sources:
   walls, when its resultant is at least ``WALLS_MIN_RESULTANT`` (rectilinear walls agree mod 90°).
 - **The survey** (`survey_grids`, for a floor without such walls): a survey records where people
   walked or stood. Where its fingerprints carry a device and a time, consecutive fingerprints of
-  one device 0.3–10 m apart are the surveyor's moves (``walks``); otherwise each surveyed position
-  and its two nearest others within 5 m (``points``: a survey every few metres along corridors).
+  one device 0.3–10 m apart are the surveyor's moves (``walks``); where there are none or they agree on
+  no grid, each surveyed position and its two nearest others within 5 m (``points``: a survey every
+  few metres along corridors, or surveyors hopping between its reference points in any order).
   The grid is the kernel mode (3°) of those segments' length-weighted directions mod 90° — the
   mean is pulled by moves across open areas, the mode is the corridors' — accepted when their
   4θ resultant is at least ``SURVEY_MIN_RESULTANT``. On the MSFT site-1 fold maps the walks give
@@ -114,24 +115,33 @@ def neighbour_segments(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return (xy[idx] - xy[:, None, :])[near]
 
 
+def _grid_of(segs: np.ndarray) -> tuple[float, float] | None:
+    """(direction, resultant) of segments that agree on a grid, else None."""
+    if len(segs) == 0:
+        return None
+    length = np.hypot(segs[:, 0], segs[:, 1])
+    strength, _ = _resultant(segs[:, 0], segs[:, 1], length)
+    if strength < SURVEY_MIN_RESULTANT:
+        return None
+    return mode_direction_deg(segs[:, 0], segs[:, 1], length), round(strength, 3)
+
+
 def survey_grids(building: np.ndarray, floor: np.ndarray, x: np.ndarray, y: np.ndarray,
                  device: np.ndarray | None = None, t: np.ndarray | None = None) -> list[FloorGrid]:
-    """Each floor's grid from its fingerprints (positions, and device and time where known), for the
-    floors whose segments agree on one (module docstring)."""
+    """Each floor's grid from its fingerprints: from its walks where it has at least
+    ``MIN_WALK_SEGMENTS`` moves and they agree on one, else from its surveyed positions (a survey
+    whose devices hop between reference points in any order shows its grid by where they stand,
+    not by how they moved); floors where neither agrees have none (module docstring)."""
     building, floor = np.asarray(building, int), np.asarray(floor, int)
     out = []
     for b, f in sorted({(int(b), int(f)) for b, f in zip(building, floor, strict=True)}):
         on = (building == b) & (floor == f)
-        segs = walk_segments(x[on], y[on], None if device is None else np.asarray(device, object)[on],
-                             None if t is None else np.asarray(t, float)[on])
-        source = "walks"
-        if len(segs) < MIN_WALK_SEGMENTS:
-            segs, source = neighbour_segments(x[on], y[on]), "points"
-        if len(segs) == 0:
-            continue
-        length = np.hypot(segs[:, 0], segs[:, 1])
-        strength, _ = _resultant(segs[:, 0], segs[:, 1], length)
-        if strength >= SURVEY_MIN_RESULTANT:
-            out.append(FloorGrid(b, f, mode_direction_deg(segs[:, 0], segs[:, 1], length), round(strength, 3),
-                                 len(segs), source))
+        moves = walk_segments(x[on], y[on], None if device is None else np.asarray(device, object)[on],
+                              None if t is None else np.asarray(t, float)[on])
+        for source, segs in (("walks", moves if len(moves) >= MIN_WALK_SEGMENTS else np.zeros((0, 2))),
+                             ("points", neighbour_segments(x[on], y[on]))):
+            found = _grid_of(segs)
+            if found is not None:
+                out.append(FloorGrid(b, f, found[0], found[1], len(segs), source))
+                break
     return out

@@ -106,3 +106,18 @@ def test_moves_too_short_or_too_long_are_not_walking():
     xy = np.array([[0.0, 0.0], [0.0, 0.1], [0.0, 1.0], [0.0, 30.0], [0.0, 31.0]])
     moves = building_grid.walk_segments(xy[:, 0], xy[:, 1], np.array(["d"] * 5, object), np.arange(5.0))
     np.testing.assert_allclose(moves, [[0.0, 0.9], [0.0, 1.0]])  # standing still and a 29 m gap left out
+
+
+def test_surveyors_hopping_between_points_in_any_order_show_the_grid_by_where_they_stand():
+    # Four surveyors visit the points of a 1.5 m lattice (turned 20°) in random order: their moves
+    # go every way, the points they stood on lie on the grid.
+    rng = np.random.default_rng(3)
+    points = rotate(np.array([(1.5 * i, 1.5 * j) for i in range(6) for j in range(5)]), 20.0)
+    visits = np.vstack([points[rng.permutation(len(points))] for _ in range(4)])
+    device = np.repeat(np.array(["s0", "s1", "s2", "s3"], object), len(points))
+    t = np.arange(len(visits), dtype=float)
+    moves = building_grid.walk_segments(visits[:, 0], visits[:, 1], device, t)
+    assert len(moves) >= building_grid.MIN_WALK_SEGMENTS
+    assert building_grid._grid_of(moves) is None  # the moves agree on no grid
+    (g,) = grids_of(visits, device=device, t=t)
+    assert g.source == "points" and g.deg == pytest.approx(20.0, abs=0.25)
