@@ -136,12 +136,12 @@ def survey_grids(building: np.ndarray, floor: np.ndarray, x: np.ndarray, y: np.n
     out = []
     for b, f in sorted({(int(b), int(f)) for b, f in zip(building, floor, strict=True)}):
         on = (building == b) & (floor == f)
-        moves = walk_segments(x[on], y[on], None if device is None else np.asarray(device, object)[on],
-                              None if t is None else np.asarray(t, float)[on])
-        for source, segs in (("walks", moves if len(moves) >= MIN_WALK_SEGMENTS else np.zeros((0, 2))),
-                             ("points", neighbour_segments(x[on], y[on]))):
-            found = _grid_of(segs)
-            if found is not None:
-                out.append(FloorGrid(b, f, found[0], found[1], len(segs), source))
-                break
+        segs = walk_segments(x[on], y[on], None if device is None else np.asarray(device, object)[on],
+                             None if t is None else np.asarray(t, float)[on])
+        source, found = "walks", _grid_of(segs) if len(segs) >= MIN_WALK_SEGMENTS else None
+        if found is None:  # (the positions' neighbours only where the walks say nothing)
+            segs = neighbour_segments(x[on], y[on])
+            source, found = "points", _grid_of(segs)
+        if found is not None:
+            out.append(FloorGrid(b, f, found[0], found[1], len(segs), source))
     return out
