@@ -69,7 +69,7 @@ from server.estimation.floorplan import Walkable  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.landmarks import LandmarkCorrector  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
-from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, SurveyGrid, step_displacement  # noqa: E402
+from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 
 FILTERS = ("ekf", "ukf", "pf", "skpf", "ekf-xy", "ukf-xy", "pf-xy", "skpf-xy", "kf", "fkf")
 
@@ -195,12 +195,10 @@ class World:
         """Where the survey stands: every 2 m along the loop."""
         return np.array([self.loop_point(float(u)) for u in np.arange(0.0, 2 * (self.sc.width_m + self.sc.height_m), 2.0)])
 
-    def grids(self) -> dict[tuple[int, int], SurveyGrid]:
-        """The floor's grid as the server's training measures it from this survey (``building_grid``;
-        a survey without walks: no on-grid share)."""
+    def grids(self) -> dict[tuple[int, int], float]:
+        """The floor's grid as the server's training measures it from this survey (``building_grid``)."""
         xy = self.survey_points()
-        return {(g.building, g.floor): SurveyGrid(g.deg, g.on_grid_share)
-                for g in survey_grids(np.zeros(len(xy)), np.zeros(len(xy)), xy[:, 0], xy[:, 1])}
+        return {(g.building, g.floor): g.deg for g in survey_grids(np.zeros(len(xy)), np.zeros(len(xy)), xy[:, 0], xy[:, 1])}
 
     def model(self, algorithm: str = "knn"):
         rng = np.random.default_rng(self.sc.seed + 2)

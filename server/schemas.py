@@ -503,11 +503,6 @@ class SurveyGridOut(BaseModel):
     resultant: float = Field(description="How strongly the segments agree mod 90° (1: all along the grid; kept from 0.3).")
     segments: int
     source: Literal["walks", "points"]
-    on_grid_share: float | None = Field(None, description=(
-        "The share of the surveyors' straight runs that follow the grid (the rest cross at any angle), fitted "
-        "with `on_grid_sigma_deg`, their spread about it; the sessions weigh each run's observation of the grid "
-        "by how likely it is to be on it. Absent without enough walks (every run near the grid is then taken as on it)."))
-    on_grid_sigma_deg: float | None = None
 
 
 class ModelMetrics(BaseModel):

@@ -19,13 +19,6 @@ Two sources:
   4θ resultant is at least ``SURVEY_MIN_RESULTANT``. On the MSFT site-1 fold maps the walks give
   10.75–11.50° against the plan's walls 10.83°, with resultants 0.37–0.51 (their nearest
   positions 0.20–0.32); a survey every 2 m along a rectangular loop gives its axes exactly.
-
-Not every straight run follows the grid: people cross open areas at any angle. Where the survey
-has walks, ``on_grid_fit`` measures how many do: the surveyors' straight runs (``STRAIGHT_MOVES``
-consecutive moves of one device within ``STRAIGHT_DEG`` of each other), their offsets from the grid
-fitted as a share π along it, N(0, σ²), and the rest spread evenly over the 90° (EM, length-weighted).
-On the MSFT site-1 fold maps π is 0.53–0.66 and σ 3.0–3.3°. The trackers weigh each run's
-observation of the grid by how likely it is to be on the grid (``selfcal.Calibrating._observe_grid``).
 """
 
 from __future__ import annotations
@@ -48,12 +41,6 @@ MIN_WALK_SEGMENTS = 20
 #: a position's nearest neighbours that count, and how far they may be (m)
 NEIGHBOURS = 2
 NEIGHBOUR_MAX_M = 5.0
-#: a straight run: headings (of steps, or of a surveyor's moves) within this of each other (degrees)
-STRAIGHT_DEG = 10.0
-#: a surveyor's straight run: this many consecutive moves, each within ``STRAIGHT_DEG`` of the middle one
-STRAIGHT_MOVES = 3
-#: fewer straight runs than this on a floor: no on-grid share is fitted (the trackers take every run as on the grid)
-MIN_STRAIGHT_RUNS = 20
 #: the kernel's bandwidth for the mode of the directions (degrees), and the grid it is evaluated on
 MODE_BANDWIDTH_DEG = 3.0
 MODE_STEP_DEG = 0.25
@@ -70,10 +57,6 @@ class FloorGrid:
     resultant: float
     segments: int
     source: str
-    #: the share π of the survey's straight runs along the grid and their spread σ (degrees) about it
-    #: (``on_grid_fit``; None without enough walks)
-    on_grid_share: float | None = None
-    on_grid_sigma_deg: float | None = None
 
 
 def _resultant(dx: np.ndarray, dy: np.ndarray, length: np.ndarray) -> tuple[float, float]:
@@ -105,67 +88,19 @@ def mode_direction_deg(dx: np.ndarray, dy: np.ndarray, length: np.ndarray) -> fl
     return float((grid[int(np.argmax(density))] + 45.0) % 90.0 - 45.0)
 
 
-def device_tracks(x: np.ndarray, y: np.ndarray, device: np.ndarray | None, t: np.ndarray | None) -> list[np.ndarray]:
-    """Each device's (n, 2) positions in time order (fingerprints with a device and a finite time)."""
-    if device is None or t is None or len(x) < 2:
-        return []
-    known = np.array([d is not None for d in device]) & np.isfinite(np.asarray(t, float))
-    if known.sum() < 2:
-        return []
-    dev = np.asarray([str(d) for d in np.asarray(device, object)[known]])
-    order = np.lexsort((np.asarray(t, float)[known], dev))
-    dev, xy = dev[order], np.column_stack((np.asarray(x, float)[known], np.asarray(y, float)[known]))[order]
-    cuts = np.flatnonzero(dev[1:] != dev[:-1]) + 1
-    return [track for track in np.split(xy, cuts) if len(track) >= 2]
-
-
-def _moves(track: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A track's moves and whether each is a move (``MOVE_RANGE_M`` long)."""
-    moves = np.diff(track, axis=0)
-    length = np.hypot(moves[:, 0], moves[:, 1])
-    return moves, (length >= MOVE_RANGE_M[0]) & (length <= MOVE_RANGE_M[1])
-
-
 def walk_segments(x: np.ndarray, y: np.ndarray, device: np.ndarray | None, t: np.ndarray | None) -> np.ndarray:
     """(n, 2) moves between consecutive fingerprints of one device by time, ``MOVE_RANGE_M`` long."""
-    segs = [moves[ok] for moves, ok in map(_moves, device_tracks(x, y, device, t))]
-    return np.concatenate(segs) if segs else np.zeros((0, 2))
-
-
-def straight_runs(x: np.ndarray, y: np.ndarray, device: np.ndarray | None, t: np.ndarray | None) -> np.ndarray:
-    """(n, 2) the surveyors' straight runs: the sum of ``STRAIGHT_MOVES`` consecutive moves of one
-    device, each within ``STRAIGHT_DEG`` of the middle one (one run per middle move)."""
-    runs = []
-    half = STRAIGHT_MOVES // 2
-    for track in device_tracks(x, y, device, t):
-        moves, ok = _moves(track)
-        if len(moves) < STRAIGHT_MOVES:
-            continue
-        heading = np.degrees(np.arctan2(moves[:, 0], moves[:, 1]))
-        for j in range(half, len(moves) - half):
-            window = slice(j - half, j + half + 1)
-            off = (heading[window] - heading[j] + 180.0) % 360.0 - 180.0
-            if ok[window].all() and (np.abs(off) <= STRAIGHT_DEG).all():
-                runs.append(moves[window].sum(axis=0))
-    return np.asarray(runs).reshape(-1, 2)
-
-
-def on_grid_fit(runs: np.ndarray, deg: float, iterations: int = 200) -> tuple[float, float] | None:
-    """(π, σ in degrees): the runs' offsets r from the grid ``deg`` (mod 90°, length-weighted) as
-    π·N(0, σ²) + (1 − π)·U(−45°, 45°), fitted by EM; None for fewer than ``MIN_STRAIGHT_RUNS`` runs."""
-    if len(runs) < MIN_STRAIGHT_RUNS:
-        return None
-    length = np.hypot(runs[:, 0], runs[:, 1])
-    r = (np.degrees(np.arctan2(runs[:, 0], runs[:, 1])) - deg + 45.0) % 90.0 - 45.0
-    share, sigma = 0.5, MODE_BANDWIDTH_DEG
-    for _ in range(iterations):
-        on = share * np.exp(-0.5 * (r / sigma) ** 2) / (math.sqrt(2 * math.pi) * sigma)
-        weight = length * on / (on + (1.0 - share) / 90.0)
-        if weight.sum() <= 0:
-            return 0.0, round(sigma, 2)
-        share = float(weight.sum() / length.sum())
-        sigma = max(0.5, math.sqrt(float(weight @ r**2 / weight.sum())))
-    return round(share, 3), round(sigma, 2)
+    if device is None or t is None or len(x) < 2:
+        return np.zeros((0, 2))
+    known = np.array([d is not None for d in device]) & np.isfinite(np.asarray(t, float))
+    if known.sum() < 2:
+        return np.zeros((0, 2))
+    dev = np.asarray([str(d) for d in np.asarray(device, object)[known]])
+    order = np.lexsort((np.asarray(t, float)[known], dev))
+    dev, px, py = dev[order], np.asarray(x, float)[known][order], np.asarray(y, float)[known][order]
+    moves = np.column_stack((np.diff(px), np.diff(py)))[dev[1:] == dev[:-1]]
+    length = np.hypot(moves[:, 0], moves[:, 1])
+    return moves[(length >= MOVE_RANGE_M[0]) & (length <= MOVE_RANGE_M[1])]
 
 
 def neighbour_segments(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -196,8 +131,7 @@ def survey_grids(building: np.ndarray, floor: np.ndarray, x: np.ndarray, y: np.n
     """Each floor's grid from its fingerprints: from its walks where it has at least
     ``MIN_WALK_SEGMENTS`` moves and they agree on one, else from its surveyed positions (a survey
     whose devices hop between reference points in any order shows its grid by where they stand,
-    not by how they moved); floors where neither agrees have none; with walks, the share of their
-    straight runs along the grid (``on_grid_fit``) (module docstring)."""
+    not by how they moved); floors where neither agrees have none (module docstring)."""
     building, floor = np.asarray(building, int), np.asarray(floor, int)
     out = []
     for b, f in sorted({(int(b), int(f)) for b, f in zip(building, floor, strict=True)}):
@@ -208,11 +142,6 @@ def survey_grids(building: np.ndarray, floor: np.ndarray, x: np.ndarray, y: np.n
         if found is None:  # (the positions' neighbours only where the walks say nothing)
             segs = neighbour_segments(x[on], y[on])
             source, found = "points", _grid_of(segs)
-        if found is None:
-            continue
-        fit = None
-        if device is not None and t is not None:
-            fit = on_grid_fit(straight_runs(x[on], y[on], np.asarray(device, object)[on], np.asarray(t, float)[on]),
-                              found[0])
-        out.append(FloorGrid(b, f, found[0], found[1], len(segs), source, *(fit or (None, None))))
+        if found is not None:
+            out.append(FloorGrid(b, f, found[0], found[1], len(segs), source))
     return out

@@ -178,16 +178,6 @@ class Beacon:
 
 
 @dataclass(frozen=True)
-class SurveyGrid:
-    """A floor's grid as its survey shows it (``building_grid``): the corridors' direction mod 90°
-    (degrees) and the share of straight runs that follow it (None: not measured; every run near
-    the grid is taken as on it)."""
-
-    deg: float
-    on_grid_share: float | None = None
-
-
-@dataclass(frozen=True)
 class SiteMap:
     """What a tracker knows of a site: positioned transmitters by id; walls, walkable area and the
     survey's grid direction by (building, level)."""
@@ -196,9 +186,9 @@ class SiteMap:
     walls: dict[tuple[int, int], list] = field(default_factory=dict)
     #: walkable area by (building, level), a ``floorplan.Walkable``; a floor without one is unconstrained
     walkable: dict[tuple[int, int], Any] = field(default_factory=dict)
-    #: the grid by (building, level) measured from the survey (``building_grid.survey_grids``): its
-    #: direction is used where the floor's walls give none, its on-grid share on every floor
-    grids: dict[tuple[int, int], SurveyGrid] = field(default_factory=dict)
+    #: grid direction (degrees, mod 90°) by (building, level) measured from the survey
+    #: (``building_grid.survey_grids``); used where the floor's walls give none
+    grids: dict[tuple[int, int], float] = field(default_factory=dict)
 
     def walls_of(self, level: int, building: int = 0) -> list:
         return self.walls.get((building, level), [])

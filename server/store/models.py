@@ -13,7 +13,6 @@ from sqlalchemy import Connection, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.domain import ACTIVATIONS, Activation, Artifact, ModelInfo, ModelSpec, ModelStatus, ServingCandidate
-from server.estimation.types import SurveyGrid
 from server.store._direct import DirectStatement
 from server.store._results import changed
 from server.store.sites import touch_site
@@ -111,13 +110,11 @@ def serving_model(conn: Connection, site_id: int, model_id: int | None) -> Servi
     return None if row is None else ServingCandidate(row[0], row[1], cast(ModelStatus, row[2]), row[3])
 
 
-def survey_grids(s: Session, model_id: int) -> dict[tuple[int, int], SurveyGrid]:
-    """The grid of each floor the model's survey showed one on, by (building, floor): its
-    ``metrics.survey_grid`` (none for a model trained before it was measured; no on-grid share for
-    one trained before that was)."""
+def survey_grids(s: Session, model_id: int) -> dict[tuple[int, int], float]:
+    """The grid direction (degrees) of each floor the model's survey showed one on, by (building,
+    floor): its ``metrics.survey_grid`` (none for a model trained before it was measured)."""
     metrics = s.scalar(select(Model.metrics).where(Model.id == model_id)) or {}
-    return {(int(g["building"]), int(g["floor"])): SurveyGrid(float(g["deg"]), g.get("on_grid_share"))
-            for g in metrics.get("survey_grid") or []}
+    return {(int(g["building"]), int(g["floor"])): float(g["deg"]) for g in metrics.get("survey_grid") or []}
 
 
 def model_artifact(s: Session, model_id: int) -> Artifact | None:

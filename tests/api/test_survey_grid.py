@@ -65,10 +65,7 @@ def test_a_model_trained_on_walks_reports_the_floors_grid_and_sessions_get_it(ad
     assert grid["deg"] == pytest.approx(DEG, abs=0.5) and grid["resultant"] > 0.9
     db = Database(clean_db)
     try:  # (a new process's contexts: the first batch loads the site whatever revision it read)
-        (served,) = SiteContexts(db).get(site["id"], "first").map.grids.items()
-        assert served[0] == (0, 0) and served[1].deg == pytest.approx(DEG, abs=0.5)
-        # (the loop's straight sides are all on its grid; its corners are not straight runs)
-        assert served[1].on_grid_share == grid["on_grid_share"] and grid["on_grid_share"] > 0.95
+        assert SiteContexts(db).get(site["id"], "first").map.grids == {(0, 0): pytest.approx(DEG, abs=0.5)}
     finally:
         db.dispose()
 

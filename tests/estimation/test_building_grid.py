@@ -121,36 +121,3 @@ def test_surveyors_hopping_between_points_in_any_order_show_the_grid_by_where_th
     assert building_grid._grid_of(moves) is None  # the moves agree on no grid
     (g,) = grids_of(visits, device=device, t=t)
     assert g.source == "points" and g.deg == pytest.approx(20.0, abs=0.25)
-
-
-def test_the_share_of_straight_runs_on_the_grid_is_fitted():
-    # 300 straight runs (three 1.4 m moves each): 70 % along a grid at 10° with a 3° spread, the
-    # rest at any angle; EM recovers the share and the spread.
-    rng = np.random.default_rng(4)
-    on = rng.random(300) < 0.7
-    deg = np.where(on, 10.0 + rng.normal(0.0, 3.0, 300), rng.uniform(0.0, 90.0, 300)) + 90.0 * rng.integers(0, 4, 300)
-    runs = 4.2 * np.column_stack((np.sin(np.radians(deg)), np.cos(np.radians(deg))))
-    share, sigma = building_grid.on_grid_fit(runs, 10.0)
-    assert share == pytest.approx(on.mean(), abs=0.06)
-    assert sigma == pytest.approx(3.0, abs=0.6)
-    assert building_grid.on_grid_fit(runs[: building_grid.MIN_STRAIGHT_RUNS - 1], 10.0) is None
-
-
-def test_straight_runs_are_three_moves_that_agree_and_turns_are_not():
-    # along +y for 5 moves, a right turn, along +x for 5 moves: 3 runs each side, none across the turn
-    xy = np.array([(0.0, 1.0 * k) for k in range(6)] + [(1.0 * k, 5.0) for k in range(1, 6)])
-    runs = building_grid.straight_runs(xy[:, 0], xy[:, 1], np.array(["d"] * len(xy), object), np.arange(len(xy), dtype=float))
-    np.testing.assert_allclose(runs, [[0.0, 3.0]] * 3 + [[3.0, 0.0]] * 3)
-    # two devices interleaved in time are two walks, not one zig-zag
-    both = building_grid.straight_runs(np.r_[xy[:, 0], xy[:, 0] + 50], np.r_[xy[:, 1], xy[:, 1]],
-                                       np.array(["a"] * len(xy) + ["b"] * len(xy), object),
-                                       np.r_[np.arange(len(xy)), np.arange(len(xy)) + 0.5].astype(float))
-    assert len(both) == 12
-
-
-def test_walks_give_the_on_grid_share_and_a_survey_without_walks_none():
-    xy = rotate(loop(0.7), 10.8)
-    (walked,) = grids_of(xy, device=np.array(["phone"] * len(xy), object), t=np.arange(len(xy), dtype=float))
-    assert walked.on_grid_share > 0.95 and walked.on_grid_sigma_deg < 1.0  # a loop's straight sides
-    (still,) = grids_of(np.repeat(rotate(loop(2.0), 10.8), 3, axis=0))
-    assert still.source == "points" and still.on_grid_share is None and still.on_grid_sigma_deg is None

@@ -12,7 +12,7 @@ import pytest
 from server.estimation import building_grid
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import make_tracker, selfcal, tracker_from_dict
-from server.estimation.types import SiteMap, Step, SurveyGrid
+from server.estimation.types import SiteMap, Step
 
 GAUSSIAN = ["ekf", "ukf", "skpf"]
 #: a corridor along x and a cross corridor along y: a grid at 0°
@@ -115,7 +115,7 @@ def test_a_floor_without_walls_takes_the_grid_its_survey_shows(name):
     # No plan: the floor's grid measured from its survey (set by the session) observes the bias
     # exactly as the same grid's walls would.
     surveyed = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, seed=0, **ON)
-    surveyed.set_survey_grid(SurveyGrid(0.0))
+    surveyed.set_survey_grid(0.0)
     walled = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
     walk(surveyed, [102.0] * 30)
     walk(walled, [102.0] * 30)
@@ -133,7 +133,7 @@ class NoFixes:
 def test_a_session_gives_its_tracker_the_survey_grid_of_its_floor(name):
     steps = [Step(float(k), 0.7, 102.0, 0.05, 2.0) for k in range(30)]
     learned = {}
-    for label, grids in (("this floor", {(0, 0): SurveyGrid(0.0)}), ("another floor", {(0, 1): SurveyGrid(0.0)})):
+    for label, grids in (("this floor", {(0, 0): 0.0}), ("another floor", {(0, 1): 0.0})):
         est = SessionEstimator(name, seed=1, tracker_params=ON)
         est.start([0.0, 1.5], np.eye(2) * 0.1, 0, [], None, "init")
         for k in range(0, 30, 6):  # stored and loaded between batches, as the server does
@@ -147,11 +147,11 @@ def test_a_session_gives_its_tracker_the_survey_grid_of_its_floor(name):
 @pytest.mark.parametrize("name", GAUSSIAN)
 def test_the_walls_grid_comes_before_the_surveys_and_neither_is_stored(name):
     t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, walls=WALLS, seed=0, **ON)
-    t.set_survey_grid(SurveyGrid(30.0))  # a survey that disagrees with the plan: the plan's walls decide
+    t.set_survey_grid(30.0)  # a survey that disagrees with the plan: the plan's walls decide
     walk(t, [102.0] * 8)
     assert t.heading_bias_deg == pytest.approx(-12.0, abs=1.5)
     restored = tracker_from_dict(json.loads(json.dumps(t.to_dict(walls=False))))
-    assert restored.survey_grid is None  # it comes from the site before every input, as the walls do
+    assert restored.survey_grid_deg is None  # it comes from the site before every input, as the walls do
 
 
 @pytest.mark.parametrize("name", GAUSSIAN)
@@ -221,72 +221,3 @@ def test_a_restored_pf_continues_its_run_exactly():
     older = tracker_from_dict(state)
     walk(older, [100.0] * 6, start=5)
     assert older._run.n == 6
-
-
-def test_the_bias_observation_weighed_by_its_probability_is_the_pda_update():
-    # beta = 0: nothing moves; beta = 1: the Kalman update; between: the mean moves by beta of the
-    # Kalman step and the covariance keeps the spread of the two hypotheses (probabilistic data association).
-    rng = np.random.default_rng(2)
-    A = rng.normal(size=(4, 4))
-    P = A @ A.T + np.eye(4)
-    x = np.array([1.0, 2.0, 0.1, 1.1])
-    nu, var, beta = 0.05, 0.003, 0.3
-    as_floats = (tuple(x), tuple(map(tuple, P)))
-    S = P[2, 2] + var
-    K = P[:, 2] / S
-    kalman_x, kalman_P = x + K * nu, P - S * np.outer(K, K)
-    got_x, got_P = selfcal.observe_bias(*as_floats, nu, var, beta)
-    np.testing.assert_allclose(got_x, beta * kalman_x + (1 - beta) * x, rtol=1e-12)
-    mixture = beta * (kalman_P + np.outer(kalman_x - got_x, kalman_x - got_x)) + (1 - beta) * (P + np.outer(x - got_x, x - got_x))
-    np.testing.assert_allclose(got_P, mixture, rtol=1e-10, atol=1e-12)
-    unchanged_x, unchanged_P = selfcal.observe_bias(*as_floats, nu, var, 0.0)
-    np.testing.assert_allclose(unchanged_x, x, rtol=0, atol=0)
-    np.testing.assert_allclose(unchanged_P, P, rtol=0, atol=1e-15)
-    arr_x, arr_P = selfcal.observe_bias_array(x, P, nu, var, beta)  # the EKF's longer state: the same update
-    np.testing.assert_allclose(arr_x, got_x, rtol=1e-12)
-    np.testing.assert_allclose(arr_P, got_P, rtol=1e-10, atol=1e-12)
-
-
-def test_a_run_is_on_the_grid_with_the_probability_of_its_offset():
-    var = math.radians(5.0) ** 2
-    assert selfcal.on_grid_weight(math.radians(12.0), var, None) == 1.0  # no share measured: as before
-    near, far = (selfcal.on_grid_weight(math.radians(d), var, 0.6) for d in (1.0, 20.0))
-    assert near > 0.9 and far < 0.05
-    # by hand: 0.6·N(r; 0, var) against 0.4 spread over 90°
-    r = math.radians(8.0)
-    on = 0.6 * math.exp(-0.5 * r * r / var) / math.sqrt(2 * math.pi * var)
-    assert selfcal.on_grid_weight(r, var, 0.6) == pytest.approx(on / (on + 0.4 / (math.pi / 2)), rel=1e-12)
-    # the bias's own uncertainty widens what counts as on the grid
-    assert selfcal.on_grid_weight(math.radians(15.0), math.radians(15.0) ** 2, 0.6) > 0.5
-
-
-@pytest.mark.parametrize("name", GAUSSIAN)
-def test_a_run_across_an_open_area_moves_the_bias_less_where_the_survey_saw_such_runs(name):
-    # A known heading (bias prior 2°) and a run 12° off the grid: taken as on the grid it drags the
-    # bias towards -12°; with the survey's share of on-grid runs it is likely off the grid and moves little.
-    learned = {}
-    for share in (None, 0.6):
-        t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, seed=0, bias0_std_deg=2.0, **ON)
-        t.set_survey_grid(SurveyGrid(0.0, share))
-        walk(t, [102.0] * 8)
-        learned[share] = t.heading_bias_deg
-    assert learned[None] < -6.0
-    assert -2.0 < learned[0.6] < 0.0
-    # and a run on the grid still observes it
-    t = make_tracker(name, [0.0, 1.5], np.eye(2) * 0.1, seed=0, **ON)
-    t.set_survey_grid(SurveyGrid(0.0, 0.6))
-    walk(t, [93.0] * 8)
-    assert t.heading_bias_deg == pytest.approx(-3.0, abs=1.0)
-
-
-def test_the_pfs_grid_likelihood_keeps_particles_off_the_grid_where_the_survey_saw_such_runs():
-    weights = {}
-    for share in (None, 0.6):
-        t = pf(**ON)
-        t.set_survey_grid(SurveyGrid(0.0, share))
-        t.particles[:, 2] = np.radians(np.linspace(-20.0, 20.0, len(t.particles)))
-        walk(t, [100.0] * 8)  # the grid says b = -10°
-        b = np.degrees(t.particles[:, 2])
-        weights[share] = t.weights[np.abs(b - 10.0) < 2.0].sum()  # particles 20° from the grid's answer
-    assert weights[None] < 1e-6
-    assert weights[0.6] > 0.005

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from server.estimation.types import Fix, Step, SurveyGrid
+from server.estimation.types import Fix, Step
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
@@ -163,9 +163,9 @@ class Tracker(ABC):
         self.params: dict[str, Any] = {}
         #: the floor's walkable area (None: unconstrained); set by the session, not stored
         self.walkable: Walkable | None = None
-        #: the floor's grid measured from its survey (None: none): its direction for a floor whose
-        #: walls give none, its on-grid share on any floor; set by the session, not stored (``building_grid``)
-        self.survey_grid: SurveyGrid | None = None
+        #: the floor's grid direction measured from its survey (degrees; None: none), for a floor
+        #: whose walls give none; set by the session, not stored (``building_grid``)
+        self.survey_grid_deg: float | None = None
 
     # -- the filter ---------------------------------------------------------------
     @abstractmethod
@@ -218,10 +218,10 @@ class Tracker(ABC):
         outside it; for every tracker the session reports its estimates inside it."""
         self.walkable = walkable
 
-    def set_survey_grid(self, grid: SurveyGrid | None) -> None:
-        """The floor's grid from its survey (None: none) from the next input on; the
+    def set_survey_grid(self, deg: float | None) -> None:
+        """The floor's grid direction from its survey (None: none) from the next input on; the
         self-calibrating filters take it as a heading reference where the walls give no grid."""
-        self.survey_grid = grid
+        self.survey_grid_deg = None if deg is None else float(deg)
 
     def search_region(self) -> tuple[float, float, float, float] | None:
         """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its

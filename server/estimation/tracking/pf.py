@@ -571,23 +571,15 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         likelihood: each particle is weighed by N(rᵢ; 0, ``grid_sigma_deg``), rᵢ the offset of
         the run's heading + bᵢ from the nearest grid direction, when the cloud's mean offset (mod
         90°: the weighted circular mean of 4rᵢ, /4) is within ``grid_gate_deg``. Mod 90° all
-        through, so a cloud that holds two biases 90° apart keeps both. Where the survey measured
-        the share of runs on the grid, the likelihood is that share of N(rᵢ; 0, σ) and the rest
-        spread evenly over the 90°."""
+        through, so a cloud that holds two biases 90° apart keeps both."""
         offset = self._grid_offset(step)
         if offset is None:
             return
         r = np.radians(selfcal.wrap_deg(offset - np.degrees(self.particles[:, 2]), 90.0))
         mean_r = math.degrees(np.angle(self.weights @ np.exp(4j * r))) / 4.0
         p = self.params
-        if abs(mean_r) > p["grid_gate_deg"]:
-            return
-        sigma, share = math.radians(p["grid_sigma_deg"]), self._on_grid_share
-        if share is None:
-            self._reweight(-0.5 * (r / sigma) ** 2)
-        else:  # (a run on the grid with probability share, else anywhere in its 90°)
-            on = share * np.exp(-0.5 * (r / sigma) ** 2) / (math.sqrt(2.0 * math.pi) * sigma)
-            self._reweight(np.log(on + (1.0 - share) / (0.5 * math.pi)))
+        if abs(mean_r) <= p["grid_gate_deg"]:
+            self._reweight(-0.5 * (r / math.radians(p["grid_sigma_deg"])) ** 2)
 
     def update(self, fix: Fix) -> None:
         floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)

@@ -29,8 +29,8 @@ from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
-from server.estimation.building_grid import STRAIGHT_DEG, grid_direction_deg
-from server.estimation.types import Step, SurveyGrid
+from server.estimation.building_grid import grid_direction_deg
+from server.estimation.types import Step
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
 BIAS0_STD_DEG = 10.0
@@ -54,6 +54,8 @@ N_AUG = 4
 GRID_SIGMA_DEG = 3.0
 GRID_GATE_DEG = 20.0
 GRID_STEPS = 8
+#: a straight run: consecutive steps whose reported heading stays within this of the run's mean (degrees)
+STRAIGHT_DEG = 10.0
 
 
 def finite_nonnegative(**values: float) -> dict[str, float]:
@@ -188,43 +190,27 @@ Vec4 = tuple[float, ...]
 Mat4 = tuple[tuple[float, ...], ...]
 
 
-def on_grid_weight(innovation: float, variance: float, share: float | None) -> float:
-    """β, the probability that a straight run is on the grid given its offset from it
-    (``innovation`` in radians, ``variance`` the bias's plus the observation's): a share ``share``
-    of runs follow the grid, N(0, variance), the rest are spread evenly over its 90°
-    (``building_grid.on_grid_fit``); 1 when the share is not known."""
-    if share is None or share >= 1.0:
-        return 1.0
-    on = share * math.exp(-0.5 * innovation * innovation / variance) / math.sqrt(2.0 * math.pi * variance)
-    off = (1.0 - share) / (0.5 * math.pi)
-    return on / (on + off) if on + off > 0 else 0.0
-
-
-def observe_bias(x: Vec4, P: Mat4, innovation: float, var: float, beta: float = 1.0) -> tuple[Vec4, Mat4]:
-    """A scalar Kalman update of [x, y, b, s] by an observation of b (innovation ν = z − b̂, noise
-    variance ``var``) that is what it claims with probability β (``on_grid_weight``; probabilistic
-    data association, the other hypothesis moving nothing): x += β·K·ν, P −= β·K·P[2, :] −
-    β(1 − β)·ν²·K·Kᵀ with K = P[:, 2] / (P[2, 2] + var), b and s clamped as everywhere. β = 1 is the
-    plain Kalman update. Written out on Python floats from P's upper triangle (the result is
+def observe_bias(x: Vec4, P: Mat4, innovation: float, var: float) -> tuple[Vec4, Mat4]:
+    """A scalar Kalman update of [x, y, b, s] by an observation of b (innovation z − b̂, noise
+    variance ``var``): x += K·innovation, P −= K·P[2, :] with K = P[:, 2] / (P[2, 2] + var), b and
+    s clamped as everywhere. Written out on Python floats from P's upper triangle (the result is
     symmetric by construction; NumPy calls on 4 numbers would cost 5× the arithmetic)."""
-    c = P[2]
-    g = 1.0 / (c[2] + var)
-    k = tuple(ci * g for ci in c)
-    spread = beta * (1.0 - beta) * innovation * innovation
-    upper = {(i, j): P[i][j] - beta * c[i] * k[j] + spread * k[i] * k[j] for i in range(N_AUG) for j in range(i, N_AUG)}
-    step = beta * innovation
+    (p00, p01, c0, p03), (_, p11, c1, p13), (_, _, c2, c3), (_, _, _, p33) = P
+    g = 1.0 / (c2 + var)
+    k0, k1, k2, k3 = c0 * g, c1 * g, c2 * g, c3 * g
+    n00, n01, n02, n03 = p00 - c0 * k0, p01 - c0 * k1, c0 - c0 * k2, p03 - c0 * k3
+    n11, n12, n13 = p11 - c1 * k1, c1 - c1 * k2, p13 - c1 * k3
+    n22, n23, n33 = c2 - c2 * k2, c3 - c2 * k3, p33 - c3 * k3
     x0, x1, b, sc = x
-    return ((x0 + k[0] * step, x1 + k[1] * step, *clamp_calibration(b + k[2] * step, sc + k[3] * step)),
-            tuple(tuple(upper[min(i, j), max(i, j)] for j in range(N_AUG)) for i in range(N_AUG)))
+    return ((x0 + k0 * innovation, x1 + k1 * innovation, *clamp_calibration(b + k2 * innovation, sc + k3 * innovation)),
+            ((n00, n01, n02, n03), (n01, n11, n12, n13), (n02, n12, n22, n23), (n03, n13, n23, n33)))
 
 
-def observe_bias_array(x: np.ndarray, P: np.ndarray, innovation: float, var: float,
-                       beta: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def observe_bias_array(x: np.ndarray, P: np.ndarray, innovation: float, var: float) -> tuple[np.ndarray, np.ndarray]:
     """``observe_bias`` on a state that carries more than [x, y, b, s] (an EKF with the walk's fix
-    offset): the same scalar update, in NumPy."""
+    offset): the same scalar Kalman update, in NumPy."""
     K = P[:, 2] / (P[2, 2] + var)
-    return (clamp(x + K * (beta * innovation)),
-            P - beta * np.outer(K, P[2, :]) + beta * (1.0 - beta) * innovation**2 * np.outer(K, K))
+    return clamp(x + K * innovation), P - np.outer(K, P[2, :])
 
 
 class Calibrating:
@@ -236,7 +222,7 @@ class Calibrating:
     augmented = True
     params: dict[str, Any]
     walls: np.ndarray
-    survey_grid: SurveyGrid | None
+    survey_grid_deg: float | None
     _run = StraightRun()
     #: the grid direction of the walls it was computed for (``grid_direction_deg`` reads every wall)
     _grid_walls: np.ndarray | None = None
@@ -248,7 +234,7 @@ class Calibrating:
     def _grid_offset(self, step: Step) -> float | None:
         """Extend the straight run by ``step``; when an observation of the grid is due (the run has
         grown by ``grid_steps``, ``grid_sigma_deg`` > 0, the floor has a grid: its walls', else its
-        survey's, ``Tracker.survey_grid``), the grid direction minus the run's mean heading
+        survey's, ``Tracker.survey_grid_deg``), the grid direction minus the run's mean heading
         (degrees, to be wrapped with b mod 90°), else None."""
         p = self.params
         if p["grid_sigma_deg"] <= 0:
@@ -258,8 +244,7 @@ class Calibrating:
             return None
         if self._grid_walls is not self.walls:
             self._grid_walls, self._grid_deg = self.walls, grid_direction_deg(self.walls)
-        survey = self.survey_grid
-        grid = self._grid_deg if self._grid_deg is not None else None if survey is None else survey.deg
+        grid = self._grid_deg if self._grid_deg is not None else self.survey_grid_deg
         if grid is None:
             return None
         return grid - self._run.mean_deg
@@ -272,10 +257,7 @@ class Calibrating:
         ``grid_sigma_deg``: a scalar Kalman update, position and scale following through their
         correlation. Per run, not per step (the form tried before, which lost walks whose bias
         passed a wrong grid direction): a corridor is a few observations, not one per step, and
-        a turn (any step more than ``STRAIGHT_DEG`` off the run's mean) starts a new run. Where the
-        floor's survey measured how many straight runs follow the grid (``SurveyGrid.on_grid_share``),
-        the update is weighed by the probability that this run does (``on_grid_weight``): a run
-        across an open area, far from the grid under the bias's uncertainty, moves little."""
+        a turn (any step more than ``STRAIGHT_DEG`` off the run's mean) starts a new run."""
         offset = self._grid_offset(step)
         if offset is None:
             return
@@ -285,16 +267,10 @@ class Calibrating:
         if abs(r) > p["grid_gate_deg"]:
             return
         innovation, var = math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2
-        beta = on_grid_weight(innovation, P[2][2] + var, self._on_grid_share)
         if len(x) == N_AUG:
-            self._set_floats(*observe_bias(x, P, innovation, var, beta))
+            self._set_floats(*observe_bias(x, P, innovation, var))
         else:
-            self._set_state(*observe_bias_array(self.state_mean, self.state_covariance, innovation, var, beta))
-
-    @property
-    def _on_grid_share(self) -> float | None:
-        """The share of straight runs on the grid, as the floor's survey measured it (None: not measured)."""
-        return None if self.survey_grid is None else self.survey_grid.on_grid_share
+            self._set_state(*observe_bias_array(self.state_mean, self.state_covariance, innovation, var))
 
     def _floats(self) -> tuple[Vec4, Mat4]:
         """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""
