@@ -18,7 +18,6 @@ set_walls(walls), inflate(factor), search_region(), to_dict(), from_dict().
 """
 
 from server.estimation.tracking.base import TRACKERS, Tracker, make_tracker, tracker_from_dict, tracker_names
-from server.estimation.tracking.bank import EKFCompass  # noqa: F401
 from server.estimation.tracking.crowd import find_merge_target, gate, make_crowd_point, merge_points
 from server.estimation.tracking.ekf import EKFTracker, EKFXYTracker
 from server.estimation.tracking.fkf import FuzzyKFTracker
