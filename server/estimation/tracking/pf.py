@@ -517,7 +517,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         grid_sigma_deg: float = GRID_SIGMA_DEG,
         grid_gate_deg: float = selfcal.GRID_GATE_DEG,
         grid_steps: float = selfcal.GRID_STEPS,
-        grid_floor: float = 0.0,
         **pf_params,
     ) -> None:
         """The seed form's configuration (``pf_params``) plus the calibration's random walks,
@@ -532,7 +531,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if not 0.0 <= kalman_floor <= 1.0:
             raise ValueError("kalman_floor must be between 0 and 1")
         super()._configure(walls, seed, **pf_params)
-        self.params.update(self._cal, kalman_floor=float(kalman_floor), grid_floor=float(grid_floor),
+        self.params.update(self._cal, kalman_floor=float(kalman_floor),
                            **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps), float(fix_bias_switch))
 
@@ -580,11 +579,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         mean_r = math.degrees(np.angle(self.weights @ np.exp(4j * r))) / 4.0
         p = self.params
         if abs(mean_r) <= p["grid_gate_deg"]:
-            sigma = math.radians(p["grid_sigma_deg"])
-            floor = (self._kalman_floor(np.array([[0.0, 0.0, 1.0, 0.0]]), np.array([[sigma**2]]),
-                                        np.array([math.radians(mean_r)])) if p["grid_floor"] else None)
-            if self._reweight(-0.5 * (r / sigma) ** 2) and floor is not None:
-                self._keep_spread(*floor)
+            self._reweight(-0.5 * (r / math.radians(p["grid_sigma_deg"])) ** 2)
 
     def update(self, fix: Fix) -> None:
         floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)

@@ -62,7 +62,6 @@ TUNABLE: dict[str, Tunable] = {
                               "(0: off; ekf, ukf, skpf, pf, with walls)"),
     "grid_gate_deg": Tunable(0.0, 45.0, "° largest offset of a straight run from the grid that is observed"),
     "grid_steps": Tunable(1, 1000, "a straight run observes the grid every this many steps", integer=True),
-    "grid_floor": Tunable(0, 1, "probe", integer=True),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
     "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
     "box_half_width_m": Tunable(0.1, 1000.0, "m (fkf)"),
