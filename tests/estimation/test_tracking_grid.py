@@ -169,14 +169,16 @@ def test_a_restored_tracker_continues_its_run_exactly(name):
 # -- the PF: the grid as a likelihood of each particle's bias ---------------------------------------
 #: the grid of WALLS, far from the walk (the walls themselves never kill a particle here)
 FAR = [[x1 + 500.0, y1, x2 + 500.0, y2] for x1, y1, x2, y2 in WALLS]
+#: the walls' grid observed with a plan (opt-in), as a plain Gaussian likelihood
+PF_WALLS = {**ON, "grid_plan": 1, "grid_on_share": 1.0}
 
 
 def pf(walls=FAR, **params):
     return make_tracker("pf", [0.0, 1.5], np.eye(2) * 0.1, walls=walls, seed=3, **params)
 
 
-def test_the_pf_learns_a_bias_from_the_grid_without_fixes():
-    t, off = pf(**ON), pf(**OFF)
+def test_the_pf_learns_a_bias_from_the_walls_grid_without_fixes():
+    t, off = pf(**PF_WALLS), pf(**OFF)
     walk(t, [102.0] * 24)
     walk(off, [102.0] * 24)
     assert t.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
@@ -186,7 +188,7 @@ def test_the_pf_learns_a_bias_from_the_grid_without_fixes():
 
 
 def test_the_pf_keeps_two_biases_90_degrees_apart():
-    t = pf(**ON)
+    t = pf(**PF_WALLS)
     half = len(t.particles) // 2
     t.particles[:half, 2] = math.radians(-12.0)
     t.particles[half:, 2] = math.radians(78.0)
@@ -198,9 +200,9 @@ def test_the_pf_keeps_two_biases_90_degrees_apart():
     assert 0.3 < near < 0.7
 
 
-def test_the_pf_observes_nothing_off_the_grid_or_without_walls():
-    for walls, heading in ((FAR, 135.0), (None, 102.0)):  # 45° off the grid; no plan
-        t, ref = pf(walls, **ON), pf(walls, **OFF)
+def test_the_pf_observes_nothing_off_the_grid_or_without_a_grid():
+    for walls, heading in ((FAR, 135.0), (None, 102.0)):  # 45° off the grid; no plan and no survey grid
+        t, ref = pf(walls, **PF_WALLS), pf(walls, **OFF)
         walk(t, [heading] * 20)
         walk(ref, [heading] * 20)
         np.testing.assert_array_equal(t.particles, ref.particles)
@@ -208,7 +210,7 @@ def test_the_pf_observes_nothing_off_the_grid_or_without_walls():
 
 
 def test_a_restored_pf_continues_its_run_exactly():
-    t = pf(**ON)
+    t = pf(**PF_WALLS)
     walk(t, [100.0] * 5)
     state = json.loads(json.dumps(t.to_dict()))
     assert state["state"]["run"][1] == 5
@@ -221,3 +223,68 @@ def test_a_restored_pf_continues_its_run_exactly():
     older = tracker_from_dict(state)
     walk(older, [100.0] * 6, start=5)
     assert older._run.n == 6
+
+
+def test_the_default_pf_takes_the_survey_grid_on_a_floor_without_a_plan():
+    surveyed, bare = pf(None), pf(None)  # default parameters
+    surveyed.set_survey_grid(0.0)
+    walk(surveyed, [102.0] * 24)
+    walk(bare, [102.0] * 24)
+    assert surveyed.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
+    assert math.sqrt(surveyed.state_covariance[2, 2]) < math.radians(5.0)
+    assert abs(bare.heading_bias_deg) < 2.0  # no grid: nothing to observe
+
+
+def test_with_a_plan_the_default_pf_leaves_the_grid_alone_unless_asked():
+    default, off, asked = pf(), pf(**OFF), pf(grid_plan=1)
+    for t in (default, off, asked):
+        t.set_survey_grid(0.0)
+        walk(t, [102.0] * 16)
+    np.testing.assert_array_equal(default.particles, off.particles)
+    np.testing.assert_array_equal(default.weights, off.weights)
+    assert asked.heading_bias_deg == pytest.approx(-12.0, abs=2.5)
+
+
+def test_a_pf_stored_before_grid_plan_keeps_observing_the_walls_grid():
+    t = pf(**PF_WALLS)
+    walk(t, [102.0] * 5)
+    state = json.loads(json.dumps(t.to_dict()))
+    del state["params"]["grid_plan"], state["params"]["grid_on_share"]  # as stored before 2026-12-07
+    restored = tracker_from_dict(state)
+    assert restored.params["grid_plan"] == 1.0
+    walk(restored, [102.0] * 19, start=5)
+    assert restored.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
+
+
+def test_a_particle_that_puts_a_run_off_the_grid_is_less_likely_not_ruled_out():
+    kept = {}
+    for share in (1.0, 0.6):
+        t = pf(None, grid_on_share=share, resample_threshold=0.0)
+        t.set_survey_grid(0.0)
+        t.particles[:, 2] = np.radians(np.linspace(-20.0, 20.0, len(t.particles)))
+        walk(t, [100.0] * 8)  # the grid says b = -10°
+        b = np.degrees(t.particles[:, 2])
+        kept[share] = t.weights[np.abs(b - 10.0) < 2.0].sum()  # particles 20° from the grid's answer
+        assert t.heading_bias_deg < -4.0
+    assert kept[1.0] < 1e-6
+    assert kept[0.6] > 0.005
+
+
+def test_the_pf_keeps_its_bias_spread_after_a_grid_run_that_disagrees():
+    """A 5° bias prior and a run 22° off the grid: reweighted alone, the few particles out there
+    leave a bias spread narrower than a Kalman update of the cloud's moments would (most draws);
+    with the Kalman floor, never."""
+    narrower = 0
+    for seed in range(5):
+        ratio = {}
+        for kappa in (0.0, 1.0):
+            t = make_tracker("pf", [0.0, 1.5], np.eye(2) * 0.1, seed=seed, kalman_floor=kappa, bias0_std_deg=5.0,
+                             grid_gate_deg=30.0, grid_on_share=1.0, resample_threshold=0.0)
+            t.set_survey_grid(0.0)
+            walk(t, [112.0] * 7)
+            P, s2 = t.state_covariance[2, 2], math.radians(3.0) ** 2
+            walk(t, [112.0], start=7)  # the run's 8th step: the observation
+            ratio[kappa] = t.state_covariance[2, 2] / (P * s2 / (P + s2))
+        narrower += ratio[0.0] < 0.6
+        assert ratio[1.0] > 0.9
+    assert narrower >= 3
