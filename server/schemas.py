@@ -498,7 +498,7 @@ class SurveyGridOut(BaseModel):
         "The direction the floor's corridors run in, mod 90° (degrees clockwise from +y, in [−45, 45)), "
         "measured from the survey: the surveyors' moves between consecutive fingerprints of one device "
         "(`source` `walks`), else (none, or no grid in them) each surveyed position's nearest others "
-        "(`points`). On a floor whose walls give no grid, `ekf`, `ukf` and `skpf` sessions observe their "
+        "(`points`). On a floor whose walls give no grid, `ekf`, `ukf`, `skpf` and `pf` sessions observe their "
         "heading bias on straight runs near it."))
     resultant: float = Field(description="How strongly the segments agree mod 90° (1: all along the grid; kept from 0.3).")
     segments: int
