@@ -531,7 +531,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         grid_steps: float = selfcal.GRID_STEPS,
         grid_plan: float = GRID_PLAN,
         grid_on_share: float = GRID_ON_SHARE,
-        grid_run_noise: float = 0.0,
         **pf_params,
     ) -> None:
         """The seed form's configuration (``pf_params``) plus the calibration's random walks,
@@ -551,7 +550,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             raise ValueError("grid_on_share must be above 0 and at most 1")
         super()._configure(walls, seed, **pf_params)
         self.params.update(self._cal, kalman_floor=float(kalman_floor), grid_plan=float(grid_plan),
-                           grid_on_share=float(grid_on_share), grid_run_noise=float(grid_run_noise),
+                           grid_on_share=float(grid_on_share),
                            **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps), float(fix_bias_switch))
 
@@ -613,8 +612,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if abs(mean_r) > p["grid_gate_deg"]:
             return
         sigma, share = math.radians(p["grid_sigma_deg"]), p["grid_on_share"]
-        if p["grid_run_noise"]:
-            sigma = math.sqrt(sigma**2 + math.radians(step.heading_std_deg) ** 2 / max(self._run.n, 1))
         loglik = -0.5 * (r / sigma) ** 2
         if share < 1.0:
             loglik = np.log(share * np.exp(loglik) / (math.sqrt(2.0 * math.pi) * sigma) + (1.0 - share) / (0.5 * math.pi))
