@@ -169,8 +169,8 @@ def test_a_restored_tracker_continues_its_run_exactly(name):
 # -- the PF: the grid as a likelihood of each particle's bias ---------------------------------------
 #: the grid of WALLS, far from the walk (the walls themselves never kill a particle here)
 FAR = [[x1 + 500.0, y1, x2 + 500.0, y2] for x1, y1, x2, y2 in WALLS]
-#: the walls' grid observed with a plan (opt-in), as a plain Gaussian likelihood
-PF_WALLS = {**ON, "grid_plan": 1, "grid_on_share": 1.0}
+#: the walls' grid observed with a plan, as a plain Gaussian likelihood
+PF_WALLS = {**ON, "grid_on_share": 1.0}
 
 
 def pf(walls=FAR, **params):
@@ -235,25 +235,27 @@ def test_the_default_pf_takes_the_survey_grid_on_a_floor_without_a_plan():
     assert abs(bare.heading_bias_deg) < 2.0  # no grid: nothing to observe
 
 
-def test_with_a_plan_the_default_pf_leaves_the_grid_alone_unless_asked():
-    default, off, asked = pf(), pf(**OFF), pf(grid_plan=1)
-    for t in (default, off, asked):
-        t.set_survey_grid(0.0)
+def test_with_a_plan_the_default_pf_observes_the_walls_grid_unless_told_not_to():
+    default, off, left_out = pf(), pf(**OFF), pf(grid_plan=0)
+    for t in (default, off, left_out):
+        t.set_survey_grid(30.0)  # the walls' grid (0°) comes first
         walk(t, [102.0] * 16)
-    np.testing.assert_array_equal(default.particles, off.particles)
-    np.testing.assert_array_equal(default.weights, off.weights)
-    assert asked.heading_bias_deg == pytest.approx(-12.0, abs=2.5)
+    assert default.heading_bias_deg == pytest.approx(-12.0, abs=2.5)
+    np.testing.assert_array_equal(left_out.particles, off.particles)
+    np.testing.assert_array_equal(left_out.weights, off.weights)
 
 
-def test_a_pf_stored_before_grid_plan_keeps_observing_the_walls_grid():
-    t = pf(**PF_WALLS)
-    walk(t, [102.0] * 5)
-    state = json.loads(json.dumps(t.to_dict()))
-    del state["params"]["grid_plan"], state["params"]["grid_on_share"]  # as stored before 2026-12-07
-    restored = tracker_from_dict(state)
-    assert restored.params["grid_plan"] == 1.0
-    walk(restored, [102.0] * 19, start=5)
-    assert restored.heading_bias_deg == pytest.approx(-12.0, abs=2.0)
+def test_with_a_plan_the_runs_own_heading_noise_widens_the_grid_observation():
+    """No Kalman floor with a plan: σ² = 3°² + σh²/n, so a run of steps that declare 20° each
+    (σ ≈ 7.7° over 8 steps) narrows the particles' bias less than one of 2° steps (≈ 3.1°)."""
+    spread = {}
+    for heading_std in (2.0, 20.0):
+        t = pf(grid_on_share=1.0, resample_threshold=0.0)
+        for k in range(8):
+            t.predict(Step(float(k), 0.7, 102.0, 0.05, heading_std))
+        spread[heading_std] = math.degrees(math.sqrt(t.state_covariance[2, 2]))
+    assert spread[2.0] < 4.0
+    assert spread[20.0] > 1.5 * spread[2.0]
 
 
 def test_a_particle_that_puts_a_run_off_the_grid_is_less_likely_not_ruled_out():

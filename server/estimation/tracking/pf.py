@@ -124,17 +124,18 @@ FIX_BIAS_STEPS = 20.0
 FIX_BIAS_SWITCH = 0.0
 
 #: the building's grid per straight run as a likelihood of each particle's heading bias
-#: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off), on a floor without a plan: the
-#: survey's grid, the likelihood in two parts (``GRID_ON_SHARE``), the cloud kept as wide as a Kalman
-#: update by it (``kalman_floor``). Chosen on MSFT folds 0–1 and the tune and stress splits (−5.3 %),
-#: reported on MSFT folds 2–3 (−13.5 %, NEES 1.5–3.4 → 2.0–3.2) and held-out draw 592–607 (1.33 →
-#: 1.13 m, NEES 1.99 → 1.65): docs/msft-evaluation.md, "The survey's grid in the PF on a floor without
-#: a plan". With a plan the walls already hold the heading, and the walls' grid stays opt-in
-#: (``grid_plan`` 1): it won 8.5 % on the choosing folds, only 2.6 % on folds 2–3 (the rule asked 3 %)
-#: and nothing on held-out draw 128–143 ("The building's grid in the PF, per straight run").
+#: (``ParticleFilterTracker._observe_grid``; σ in degrees, 0 = off). Without a plan: the survey's
+#: grid, the likelihood in two parts (``GRID_ON_SHARE``), the cloud kept as wide as a Kalman update by
+#: it (``kalman_floor``); chosen on MSFT folds 0–1 and the tune and stress splits (−5.3 %), reported on
+#: MSFT folds 2–3 (−13.5 %, NEES 1.5–3.4 → 2.0–3.2) and held-out draw 592–607 (1.33 → 1.13 m, NEES
+#: 1.99 → 1.65): docs/msft-evaluation.md, "The survey's grid in the PF on a floor without a plan".
+#: With a plan (``GRID_PLAN``): the walls' grid, the same two parts, σ widened by the run's own
+#: heading noise (there is no Kalman floor there); chosen on MSFT folds 0–3 and held-out draw 608–623
+#: (in-sample: folds 0–1 −4.8 %, 2–3 −2.5 %), reported on held-out draw 624–639 (knn fixes 0.81 →
+#: 0.77 m, Gaussian 0.66 → 0.64; NEES 1.11 / 1.84): "The walls' grid in the PF with a plan".
 GRID_SIGMA_DEG = selfcal.GRID_SIGMA_DEG
-#: 1: observe the grid on a floor with a plan too (the walls' grid); 0 (default): only without one
-GRID_PLAN = 0.0
+#: 1 (default): observe the grid on a floor with a plan too (the walls' grid); 0: only without one
+GRID_PLAN = 1.0
 #: the share π of straight runs that follow the grid; the rest are taken as spread evenly over its
 #: 90°, so a particle whose bias puts a run off the grid keeps (1 − π)/90° of weight instead of none.
 #: 0.6: what the MSFT site-1 fold maps' survey walks show (their straight runs, 3 moves within 10°:
@@ -505,10 +506,10 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     fix, a beacon range or an observation of the grid, the particles get N(0, D), D the κ-share of what a Kalman update of
     the cloud's mean and covariance would keep beyond the reweighted cloud (``_keep_spread``).
 
-    **The building's grid** (``grid_sigma_deg``, 3° by default, ``GRID_SIGMA_DEG``): on a floor
-    without a plan, every ``grid_steps`` of a straight run the particles are weighed by their bias's
-    fit to the survey's grid (``_observe_grid``), the Gaussian filters' heading reference as a
-    likelihood; with a plan only if ``grid_plan`` is 1 (then the walls' grid)."""
+    **The building's grid** (``grid_sigma_deg``, 3° by default, ``GRID_SIGMA_DEG``): every
+    ``grid_steps`` of a straight run the particles are weighed by their bias's fit to the walls'
+    grid, else the survey's (``_observe_grid``), the Gaussian filters' heading reference as a
+    likelihood; ``grid_plan`` 0 leaves it out on a floor with a plan."""
 
     name = "pf"
     dim = 4  # 6 with the fixes' shared error (``fix_bias_share`` > 0), 7 with it learned (``fix_bias_switch`` > 0)
@@ -554,12 +555,6 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
                            **selfcal.grid_params(grid_sigma_deg, grid_gate_deg, grid_steps))
         self._set_fix_bias(float(fix_bias_share), float(fix_bias_steps), float(fix_bias_switch))
 
-    @classmethod
-    def _restore(cls, state: dict, walls, params: dict) -> Tracker:
-        """As the seed form's; a session stored before ``grid_plan`` existed observed the grid (when
-        its ``grid_sigma_deg`` turned it on) with a plan too, and goes on doing so."""
-        return super()._restore(state, walls, params if "grid_plan" in params else {**params, "grid_plan": 1.0})
-
     def _set_fix_bias(self, share: float, steps: float, switch: float) -> None:
         self.params.update(fix_bias_share=share, fix_bias_steps=steps, fix_bias_switch=switch)
         self.dim = 4 if share <= 0 else 6 if switch <= 0 else 7
@@ -597,10 +592,12 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         4rᵢ, /4) is within ``grid_gate_deg``: each particle is weighed by π·N(rᵢ; 0, σ) + (1 − π)/90°,
         rᵢ the offset of the run's heading + bᵢ from the nearest grid direction, σ
         ``grid_sigma_deg`` and π ``grid_on_share`` (a share of runs cross open space at any angle:
-        a particle that puts this run off the grid is less likely, not ruled out), then the cloud is
-        kept as wide as a Kalman update of its moments by the observation would leave it
-        (``kalman_floor``, without a plan). Mod 90° all through, so a cloud that holds two biases
-        90° apart keeps both. On a floor with a plan only with ``grid_plan`` 1."""
+        a particle that puts this run off the grid is less likely, not ruled out). Without a plan the
+        cloud is then kept as wide as a Kalman update of its moments by the observation would leave
+        it (``kalman_floor``); with a plan, which has no such floor, σ² also counts the run's own
+        heading noise (the step's declared σ² over the run's n steps), so the weighing takes no more
+        spread than the run can tell. Mod 90° all through, so a cloud that holds two biases 90° apart
+        keeps both. On a floor with a plan only with ``grid_plan`` 1 (the default)."""
         p = self.params
         if self._has_plan() and not p["grid_plan"]:
             return
@@ -612,6 +609,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if abs(mean_r) > p["grid_gate_deg"]:
             return
         sigma, share = math.radians(p["grid_sigma_deg"]), p["grid_on_share"]
+        if self._has_plan():  # (no Kalman floor there: the run's own heading noise keeps the bias spread)
+            sigma = math.sqrt(sigma**2 + math.radians(step.heading_std_deg) ** 2 / max(self._run.n, 1))
         loglik = -0.5 * (r / sigma) ** 2
         if share < 1.0:
             loglik = np.log(share * np.exp(loglik) / (math.sqrt(2.0 * math.pi) * sigma) + (1.0 - share) / (0.5 * math.pi))

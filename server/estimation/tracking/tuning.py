@@ -62,7 +62,7 @@ TUNABLE: dict[str, Tunable] = {
                               "(0: off; ekf, ukf, skpf, pf; the walls' grid, else the survey's)"),
     "grid_gate_deg": Tunable(0.0, 45.0, "° largest offset of a straight run from the grid that is observed"),
     "grid_steps": Tunable(1, 1000, "a straight run observes the grid every this many steps", integer=True),
-    "grid_plan": Tunable(0, 1, "1: the pf observes the grid on a floor with a plan too (its walls' grid)", integer=True),
+    "grid_plan": Tunable(0, 1, "0: the pf leaves the grid out on a floor with a plan (default 1: the walls' grid)", integer=True),
     "grid_on_share": Tunable(0.01, 1.0, "share of straight runs taken as on the grid, the rest at any angle (pf)"),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
     "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
