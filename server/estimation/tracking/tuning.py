@@ -57,7 +57,7 @@ TUNABLE: dict[str, Tunable] = {
     "walk_offset": Tunable(0, 2, "1: estimate the walk's fix offset from fixes that carry the map's walk share, "
                            "2: account for it without estimating it (ekf)", integer=True),
     "kalman_floor": Tunable(0.0, 1.0, "share of its shortfall from a Kalman update the cloud makes up "
-                            "after a fix or beacon range (pf, no plan)"),
+                            "after a fix, beacon range or grid run (pf, no plan)"),
     "grid_sigma_deg": Tunable(0.0, 45.0, "° σ of the building's grid as a heading reference, per straight run "
                               "(0: off; ekf, ukf, skpf, pf; the walls' grid, else the survey's)"),
     "grid_gate_deg": Tunable(0.0, 45.0, "° largest offset of a straight run from the grid that is observed"),
