@@ -598,8 +598,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         heading noise (the step's declared σ² over the run's n steps), so the weighing takes no more
         spread than the run can tell. Mod 90° all through, so a cloud that holds two biases 90° apart
         keeps both. On a floor with a plan only with ``grid_plan`` 1 (the default)."""
-        p = self.params
-        if self._has_plan() and not p["grid_plan"]:
+        p, plan = self.params, self._has_plan()
+        if plan and not p["grid_plan"]:
             return
         offset = self._grid_offset(step)
         if offset is None:
@@ -609,7 +609,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if abs(mean_r) > p["grid_gate_deg"]:
             return
         sigma, share = math.radians(p["grid_sigma_deg"]), p["grid_on_share"]
-        if self._has_plan():  # (no Kalman floor there: the run's own heading noise keeps the bias spread)
+        if plan:  # (no Kalman floor there: the run's own heading noise keeps the bias spread)
             sigma = math.sqrt(sigma**2 + math.radians(step.heading_std_deg) ** 2 / max(self._run.n, 1))
         loglik = -0.5 * (r / sigma) ** 2
         if share < 1.0:
