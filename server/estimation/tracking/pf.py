@@ -179,12 +179,13 @@ class ParticleFilterXYTracker(Tracker):
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed=None, **params):
         self._configure(walls, seed, **params)
+        self.rng = make_rng(seed)
         self.reset(initial_mean, initial_cov)
 
     @classmethod
     def _restore(cls, state: dict, walls, params: dict) -> Tracker:
-        """Configured and loaded without first drawing the particles that loading replaces
-        (two thirds of a restore's cost)."""
+        """Configured and loaded without first drawing the particles and the generator that
+        loading replaces (two thirds of a restore's cost)."""
         obj = cls.__new__(cls)
         obj._configure(walls, None, **params)
         obj._load_state(state)
@@ -205,7 +206,7 @@ class ParticleFilterXYTracker(Tracker):
         resample_kills: int = 1,
         min_survivors: float = MIN_SURVIVORS,
     ) -> None:
-        """Everything but the particles: parameters, generator, floor plan."""
+        """Everything but the particles and the generator: parameters, floor plan."""
         Tracker.__init__(self, None, None, walls=walls, seed=seed)
         if not min_survivors >= 0.0:
             raise ValueError("min_survivors must be at least 0")
@@ -228,7 +229,6 @@ class ParticleFilterXYTracker(Tracker):
             "resample_kills": int(resample_kills),
             "min_survivors": float(min_survivors),
         }
-        self.rng = make_rng(seed)
         self._grid = None
         self._wall_index: floorplan.WallIndex | None = None
 
@@ -405,20 +405,22 @@ class ParticleFilterXYTracker(Tracker):
         self.particles = self._round(self.particles, refit=False)
         self.weights = weights_as_stored(self.weights)
 
-    def _round(self, points: np.ndarray, refit: bool) -> np.ndarray:
+    def _round(self, points: np.ndarray, refit: bool | np.ndarray) -> np.ndarray:
         """Rows of particles as stored: each column on a grid of 256 values (``packed``), the
         one it is on already unless ``refit`` (then rounding again changes nothing), else one
-        fitted to its values; float32 values when a value is not finite. Column-major (a
+        fitted to its values; ``refit`` a mask of columns: those get a grid fitted to their
+        values, the others keep theirs (their values are on it: the caller did not change them),
+        without testing each value; float32 values when a value is not finite. Column-major (a
         particle's columns are reduced and moved one at a time: 10× faster than row-major)."""
         points = np.asfortranarray(points)
         if not np.all(np.isfinite(points)):
             self._grid = None
             return points.astype(np.float32).astype(float)
-        if refit or self._grid is None or len(self._grid[0]) != points.shape[1]:
+        if refit is True or self._grid is None or len(self._grid[0]) != points.shape[1]:
             lo, step = fit_grid(points)
         else:
             lo, step = self._grid
-            keep = on_grid(points, lo, step)
+            keep = on_grid(points, lo, step) if refit is False else ~np.asarray(refit, bool)
             if keep.all():
                 return points  # on the grid already: rounding again changes nothing
             fit_lo, fit_step = fit_grid(points)
@@ -670,7 +672,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         P = self.particles
         P[:, :4] += self.rng.standard_normal((len(P), 4)) @ root.T
         P[:, 3] = np.clip(P[:, 3], *selfcal.SCALE_RANGE)
-        self.particles = self._round(P, refit=False)  # (the weights are as stored: ``_reweight``)
+        moved = np.zeros(P.shape[1], bool)
+        moved[:4] = np.any(root != 0.0, axis=1)  # (a column whose row of the root is 0 did not move)
+        self.particles = self._round(P, refit=moved)  # (the weights are as stored: ``_reweight``)
 
     def _fix_loglik(self, fix: Fix) -> np.ndarray:
         """N(z; p_i + √ρ·L·u_i, (1 − ρ)·R) with the fixes' shared error (a fix that shares it),
