@@ -8,6 +8,12 @@ is the PF without them, where each update also keeps the cloud's spread (``kalma
 headings are drawn at random, so no straight run forms; ``skpf, straight`` walks one way (heading
 σ 2°), so its grid heading reference observes every 8 steps. Each figure is the best of
 ``--rounds`` rounds, the trackers' rounds interleaved, so the ratios hold on a shared machine.
+
+Last, a whole batch as ``benchmarks/sessions_load.py`` posts it (2 steps and a scan whose beacons
+give ranges, on its synthetic site without a plan but with its survey's grid, a fix near the walker
+standing in for the model's)
+through ``SessionEstimator``: restored from its JSON state, applied, stored again, as the server
+does per batch (its HTTP and database work aside), for ``pf`` and ``skpf``.
 """
 
 from __future__ import annotations
@@ -22,8 +28,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.sessions_load import walk  # noqa: E402
+from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking import make_tracker, tracker_from_dict, tracker_names  # noqa: E402
-from server.estimation.types import Fix, Step  # noqa: E402
+from server.estimation.types import Beacon, Fix, Scan, SiteMap, Step  # noqa: E402
+from tests.helpers.synthetic import make_site  # noqa: E402
 
 WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
 
@@ -75,6 +84,51 @@ class Bench:
         return {**self.best, "state_bytes": len(json.dumps(self.tracker.to_dict()))}
 
 
+class BatchBench:
+    """A session's batches as ``sessions_load`` posts them, in-process (``run_round``: µs per batch,
+    the best round kept, as ``Bench``). Each scan's fix is the walker's position (the steps summed,
+    as ``walk`` moves it) plus N(0, 1.5² m²), declared as σ 2 m: what a fingerprint model of that
+    site gives, without the model's cost (the same for every filter)."""
+
+    def __init__(self, name: str, repeat: int):
+        synth = make_site()
+        self.site = SiteMap(beacons={t["id"]: Beacon(t["id"], t["x"], t["y"], t["floor"], t["tx_power_dbm"],
+                                                     t["path_loss_exponent"]) for t in synth.transmitters},
+                            grids={(0, 0): 0.0})  # (its survey's grid: reference points on a square grid)
+        rng = np.random.default_rng(1)
+        batches = walk(synth, 1)
+        start = next(batches)
+        xy = np.array([start["x"], start["y"]])
+        self.batches: list[tuple[list[Step], list[Scan], Fix]] = []
+        for _ in range(repeat):
+            b = next(batches)
+            steps = [Step(s["t"], s["length_m"], s["heading_deg"]) for s in b["steps"]]
+            for s in steps:
+                xy = xy + s.length_m * np.array([np.sin(np.radians(s.heading_deg)), np.cos(np.radians(s.heading_deg))])
+            x, y = xy + rng.normal(0.0, 1.5, 2)
+            fix = Fix(float(x), float(y), 0, np.eye(2) * 4.0)
+            self.batches.append((steps, [Scan(c["t"], c["rss"]) for c in b["scans"]], fix))
+        est = SessionEstimator(name, seed=0)
+        est.start([start["x"], start["y"]], None, 0, [], None, "init")
+        self.state = json.loads(json.dumps(est.to_dict()))
+        self.best = float("inf")
+        self._fix: Fix | None = None
+
+    def fix(self, scan: Scan, near) -> Fix:  # (the ``FixSource``)
+        assert self._fix is not None
+        return self._fix
+
+    def run_round(self) -> None:
+        state = self.state
+        t0 = time.perf_counter()
+        for steps, scans, fix in self.batches:
+            self._fix = fix
+            est = SessionEstimator.from_dict(state)
+            est.apply_batch(steps, scans, self, self.site)
+            state = json.loads(json.dumps(est.to_dict()))
+        self.best = min(self.best, (time.perf_counter() - t0) / len(self.batches) * 1e6)
+
+
 def measure(benches: dict[str, Bench], rounds: int = ROUNDS) -> dict[str, dict[str, float]]:
     """Each tracker's best of ``rounds``, the rounds interleaved across trackers."""
     for _ in range(rounds):
@@ -103,6 +157,12 @@ def main() -> None:
             f"update {pf['update_us'] / sk['update_us']:.1f}x, "
             f"step+update {(pf['predict_us'] + pf['update_us']) / (sk['predict_us'] + sk['update_us']):.1f}x"
         )
+    batch = {name: BatchBench(name, max(args.repeat // 5, 20)) for name in ("pf", "skpf")}
+    for _ in range(args.rounds):
+        for b in batch.values():
+            b.run_round()
+    print(f"a sessions_load batch (2 steps + 1 scan, state restored and stored through JSON): "
+          f"pf {batch['pf'].best:.0f} µs, skpf {batch['skpf'].best:.0f} µs, ratio {batch['pf'].best / batch['skpf'].best:.1f}x")
 
 
 if __name__ == "__main__":

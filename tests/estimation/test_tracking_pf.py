@@ -483,9 +483,12 @@ def test_pf_kalman_floor_keeps_the_cloud_as_wide_as_a_kalman_update():
 
 def test_pf_kalman_floor_adds_no_calibration_spread_for_a_fix_that_agrees():
     t = make_tracker("pf", [0.0, 0.0], np.eye(2) * 4.0, seed=3, kalman_floor=1.0, resample_threshold=0.0)
-    before = t.particles.copy()
+    before, grid = t.particles.copy(), t._grid
     t.update(Fix(float(t.mean[0]), float(t.mean[1]), 0, np.eye(2) * 0.5))  # d² = 0: γ = 0
     np.testing.assert_array_equal(t.particles[:, 2:], before[:, 2:])
+    for new, old in zip(t._grid, grid, strict=True):  # the unmoved columns keep their grid (not refitted)
+        np.testing.assert_array_equal(new[2:], old[2:])
+        assert not np.array_equal(new[:2], old[:2])
     assert not np.array_equal(t.particles[:, :2], before[:, :2])  # the positions' shortfall was made up
     far, before = _far_fix(1.0, 3)  # d² = 7.2: γ = 0.78
     assert np.std(far.particles[:, 2] - before[:, 2]) > 0
