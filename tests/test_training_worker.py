@@ -9,7 +9,8 @@ import numpy as np
 
 from server.db import Database
 from server.domain import FingerprintRecord, ModelSpec, NewSite
-from server.services.training import TrainingWorker
+from server.services import training
+from server.services.training import TrainingWorker, run_training_job
 from server.store import models, sites, surveys
 
 
@@ -54,6 +55,28 @@ def test_worker_marks_an_untrainable_job_failed_with_the_reason(own_db):
         model = models.training_job(s, model_id)
         assert model.status == "failed" and "no fingerprints" in model.error
     worker.stop()
+    db.dispose()
+
+
+def test_a_survey_grid_that_cannot_be_measured_leaves_the_model_ready_without_it(own_db, monkeypatch, caplog):
+    """The survey's grid is the trackers' heading reference, not part of the model: an error while
+    measuring it stores the model without a grid (and says so in the log) instead of failing the job."""
+    db = Database(own_db)
+    model_id = queued_model(db, "grid fails", fingerprints=120)
+    with db.transaction() as s:
+        assert models.claim_next_model(s, datetime.now(UTC) - timedelta(minutes=30)) == model_id
+
+    def broken(*args, **kwargs):
+        raise FloatingPointError("degenerate floor")
+
+    monkeypatch.setattr(training, "survey_grids", broken)
+    assert run_training_job(own_db, model_id) == "ready"
+    with db.transaction() as s:
+        model = models.training_job(s, model_id)
+        assert model is not None and model.status == "ready" and model.error is None
+        assert model.metrics is not None and model.metrics["survey_grid"] == []
+        assert models.survey_grids(s, model_id) == {}
+    assert "survey's grid could not be measured" in caplog.text and "FloatingPointError" in caplog.text
     db.dispose()
 
 

@@ -82,7 +82,7 @@ def run_training_job(database_url: str, model_id: int) -> str:
         try:
             model, metrics = _fit(fs if trained_on else None, spec, transmitters)
             if metrics is not None:
-                metrics["survey_grid"] = [asdict(g) for g in survey_grids(fs.building, fs.floor, fs.x, fs.y, fs.device, fs.t)]
+                metrics["survey_grid"] = _survey_grid(fs, model_id)
             del fs
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin
@@ -93,6 +93,18 @@ def run_training_job(database_url: str, model_id: int) -> str:
         return "ready" if _store(db, site_id, model_id, blob, trained_on, metrics, spec.activate) else "gone"
     finally:
         db.dispose()
+
+
+def _survey_grid(fs: FingerprintSet, model_id: int) -> list[dict]:
+    """The floors' grids from the survey (``building_grid.survey_grids``), as stored in the model's
+    metrics. A heading reference for the trackers, not part of the model: should measuring it fail,
+    the model is stored without it (as a floor whose survey shows no grid) rather than failing."""
+    try:
+        return [asdict(g) for g in survey_grids(fs.building, fs.floor, fs.x, fs.y, fs.device, fs.t)]
+    except Exception:
+        log.warning("model %s: the survey's grid could not be measured; stored without it:\n%s",
+                    model_id, traceback.format_exc())
+        return []
 
 
 def _rss_dtype(algorithm: str) -> type:
