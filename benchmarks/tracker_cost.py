@@ -11,9 +11,8 @@ headings are drawn at random, so no straight run forms; ``skpf, straight`` walks
 
 Last, a whole batch as ``benchmarks/sessions_load.py`` posts it (2 steps and a scan whose beacons
 give ranges, on its synthetic site without a plan but with its survey's grid, a fix near the walker
-standing in for the model's)
-through ``SessionEstimator``: restored from its JSON state, applied, stored again, as the server
-does per batch (its HTTP and database work aside), for ``pf`` and ``skpf``.
+standing in for the model's) through ``SessionEstimator``: restored from its JSON state, applied,
+stored again, as the server does per batch (its HTTP and database work aside), for ``pf`` and ``skpf``.
 """
 
 from __future__ import annotations
@@ -31,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.sessions_load import walk  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking import make_tracker, tracker_from_dict, tracker_names  # noqa: E402
-from server.estimation.types import Beacon, Fix, Scan, SiteMap, Step  # noqa: E402
+from server.estimation.types import Beacon, Fix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 from tests.helpers.synthetic import make_site  # noqa: E402
 
 WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
@@ -104,7 +103,7 @@ class BatchBench:
             b = next(batches)
             steps = [Step(s["t"], s["length_m"], s["heading_deg"]) for s in b["steps"]]
             for s in steps:
-                xy = xy + s.length_m * np.array([np.sin(np.radians(s.heading_deg)), np.cos(np.radians(s.heading_deg))])
+                xy = xy + step_displacement(s.length_m, s.heading_deg)
             x, y = xy + rng.normal(0.0, 1.5, 2)
             fix = Fix(float(x), float(y), 0, np.eye(2) * 4.0)
             self.batches.append((steps, [Scan(c["t"], c["rss"]) for c in b["scans"]], fix))
