@@ -38,7 +38,9 @@ position NEES (2-D; mean and median over step estimates, 2 is consistent, the sh
 50: a PF cloud collapsed onto a few points, and the smoothed track's mean); the NIS of the fixes
 (mean over fixes, 2 is consistent; before any inflation); the share of fixes refused by
 the innovation gate; and the mean error of the track after the RTS smoother
-(``server/estimation/tracking/smoother.py``, run on the stored track as a replay would);
+(``server/estimation/tracking/smoother.py``, run on the stored track as a replay would; for a
+PF also, under the table, its particle smoother as ``smoother=particles`` serves it, the walk
+replayed from its recorded batches: ``server/estimation/replay.py``);
 and the mean size of the session's stored state (JSON, kB) per batch.
 
 With ``--plan`` the floor has the loop's plan: a corridor ``--corridor-m`` wide around the
@@ -66,10 +68,12 @@ from server.estimation.building_grid import survey_grids  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
 from server.estimation.floorplan import Walkable  # noqa: E402
+from server.estimation.replay import RecordedBatch, RecordingFixes, replays, smoothed_by_replay  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.landmarks import LandmarkCorrector  # noqa: E402
+from server.estimation.tracking.particle_smoother import DEFAULT_LAG  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
-from server.estimation.types import Area, Beacon, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
+from server.estimation.types import Area, Beacon, Estimate, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 
 FILTERS = ("ekf", "ukf", "pf", "skpf", "ekf-xy", "ukf-xy", "pf-xy", "skpf-xy", "kf", "fkf")
 
@@ -334,6 +338,8 @@ MODEL_PARAMS: dict = {}  # the fingerprint model's params (--model-params)
 PARAMS: dict[str, dict] = {}
 #: the corridor's width when the floor has the loop's plan (``--plan``; None: no plan)
 CORRIDOR_M: list[float | None] = [None]
+#: the PF's particle smoother's lag (``--lag``)
+LAG = [DEFAULT_LAG]
 
 
 @dataclass
@@ -342,6 +348,9 @@ class Replay:
     server stores them with it, the gate's innovations and the stored session size per batch."""
 
     estimator: SessionEstimator
+    #: the state right after the start, and each batch as recorded (``server.estimation.replay``)
+    opening: dict = field(default_factory=dict)
+    batches: list = field(default_factory=list)
     track: list = field(default_factory=list)
     states: list = field(default_factory=list)
     innovations: list = field(default_factory=list)
@@ -352,7 +361,7 @@ def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Re
     """A batch every ``batch_s`` s, the session stored and loaded between batches (as the server does)."""
     est = SessionEstimator(name, seed=7, tracker_params=PARAMS.get(name))
     est.start(w.truth[0], None, 0, [], None, "init")
-    out = Replay(est)
+    out = Replay(est, opening=json.loads(json.dumps(est.to_dict())))
     steps, scans = list(w.steps), list(w.scans)
     t_end = batch_s
     while steps or scans:
@@ -363,7 +372,9 @@ def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Re
         out.state_bytes.append(len(stored))
         est = out.estimator = SessionEstimator.from_dict(json.loads(stored))
         est.innovations = []
-        batch = est.apply_batch(bs, bc, fixes, site)
+        recording = RecordingFixes(fixes)
+        batch = est.apply_batch(bs, bc, recording, site)
+        out.batches.append(RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers)))
         out.innovations += est.innovations
         out.track += batch.estimates
         out.states += batch.states
@@ -389,7 +400,15 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
     errors, nees = errors_and_nees(r.track, truth_by_t)
     nis = [d2 for d2, _ in r.innovations]
     smoothed, smoothed_nees = errors_and_nees(smooth_track(r.track, site.walkable, r.states), truth_by_t)
+    particles: dict = {}
+    if replays(name):  # the PF's particle smoother as the server serves it (``smoother=particles``), by replay
+        init = Estimate.from_dict(r.opening["estimate"])
+        by_replay = smoothed_by_replay(r.opening, r.batches, site, [init, *r.track], LAG[0])
+        if by_replay is None:
+            raise RuntimeError(f"{name}: the replay did not reproduce the track")
+        particles = dict(zip(("particles", "particles_nees"), errors_and_nees(by_replay[1:], truth_by_t), strict=True))
     return {"errors": errors, "smoothed": smoothed, "smoothed_nees": smoothed_nees, "nees": nees, "nis": nis,
+            **particles,
             "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
             "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
 
@@ -427,6 +446,9 @@ def table(results: list[dict], methods) -> list[dict]:
         row = {"method": m, "mean": float(errs.mean()), "p90": float(np.percentile(errs, 90))}
         if "nees" in results[0].get(m, {}):
             row["smoothed"] = float(np.mean(np.concatenate([r[m]["smoothed"] for r in results])))
+            if "particles" in results[0][m]:
+                row["particles"] = float(np.mean(np.concatenate([r[m]["particles"] for r in results])))
+                row["particles_nees"] = float(np.mean(np.concatenate([r[m]["particles_nees"] for r in results])))
             smoothed_nees = np.concatenate([r[m]["smoothed_nees"] for r in results])
             row["smoothed_nees"] = float(np.mean(smoothed_nees))
             row["smoothed_nees_p50"] = float(np.median(smoothed_nees))
@@ -457,6 +479,8 @@ def markdown(rows: list[dict], title: str) -> str:
         else:
             extra = "— | — | — | — | — | — | — | — | — | — |"
         lines.append(f"| {r['method']} | {r['mean']:.2f} | {r['p90']:.2f} | {extra}")
+    lines += [f"\n{r['method']} smoothed by its particles (smoother=particles, lag {LAG[0]}): {r['particles']:.2f} m, "
+              f"NEES {r['particles_nees']:.2f}" for r in rows if "particles" in r]
     return "\n".join(lines)
 
 
@@ -483,8 +507,11 @@ def main() -> int:
                          "off at the start, as on 2 of the 43 MSFT walks (≈ 45°); the other draws are unchanged")
     ap.add_argument("--with-snap", action="store_true",
                     help="only the scenarios among --first/--n whose walk triggers a landmark snap")
+    ap.add_argument("--lag", type=int, default=DEFAULT_LAG,
+                    help="the PF's particle smoother's lag (estimates; the server's default)")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
+    LAG[0] = a.lag
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
     MODEL_PARAMS.update(a.model_params)

@@ -340,7 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "JSON, e.g. '{\"pf\": {\"q\": 0.04}}': compare settings on the same walks (with --seed-salt, "
                    "the same draws)")
     p.add_argument("--smoothed", action="store_true",
-                   help="also score each session's smoothed track (GET .../track?smoothed=true)")
+                   help="also score each session's smoothed track (GET .../track?smoothed=true; "
+                        "a pf session's also with smoother=particles)")
     p.add_argument("--url", help="use this server instead of starting one (then give the keys)")
     p.add_argument("--admin-key", default=_env("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"),
                    help="with --url (default: env LOCALIZER_ADMIN_KEY, else LOCALIZER_API_KEY)")

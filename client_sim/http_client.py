@@ -162,9 +162,9 @@ class LocalizerClient:
         """Post one batch; a failed post is retried with the same ``seq`` (the server dedups)."""
         return await self.with_retries("POST", f"{API}/sessions/{session_id}/batches", batch, retries)
 
-    async def get_track(self, session_id, smoothed: bool = False) -> list[dict]:
-        """The session's track (``smoothed``: the fixed-interval smoother's, an extension)."""
-        query = "?smoothed=true" if smoothed else ""
+    async def get_track(self, session_id, smoothed: bool = False, smoother: str = "rts") -> list[dict]:
+        """The session's track (``smoothed``: the fixed-interval smoother's, ``smoother`` which one; extensions)."""
+        query = ("?smoothed=true" + ("" if smoother == "rts" else f"&smoother={smoother}")) if smoothed else ""
         return await self.with_retries("GET", f"{API}/sessions/{session_id}/track{query}")
 
     async def close_session(self, session_id) -> None:

@@ -344,6 +344,10 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
     return [{**r, "sigma_m": sigma.get(r["t"])} for r in rows]
 
 
+#: the filters whose sessions the server can smooth by their particles (``smoother=particles``)
+PARTICLE_FILTERS = ("pf", "pf-xy")
+
+
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
                         interval_s: float, smoothed: bool = False, seed_salt: int | None = None,
                         filter_params: dict[str, float] | None = None, scans: bool = True) -> dict:
@@ -369,6 +373,9 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
         refused += len(res.get("rejected_fixes") or [])
     track = await device.get_track(session["id"])
     after = await device.get_track(session["id"], smoothed=True) if smoothed else None
+    # a PF session's own particles smoothed too (``smoother=particles``)
+    particles = (await device.get_track(session["id"], smoothed=True, smoother="particles")
+                 if smoothed and flt in PARTICLE_FILTERS else None)
     await device.close_session(session["id"])
 
     def scored(rows: list[dict]) -> list[dict]:
@@ -377,6 +384,7 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
 
     return {"session_id": session["id"], "batches": len(batches), "track": scored(track),
             "smoothed": None if after is None else scored(after), "batch_estimates": errors_against(w, batch_rows),
+            "particles": None if particles is None else scored(particles),
             "scans_sent": sent, "fixes_refused": refused}
 
 
@@ -513,6 +521,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                     refused[name] = [res["fixes_refused"], res["scans_sent"]]
                     if res["smoothed"] is not None:
                         methods[f"{name} smoothed"] = res["smoothed"]
+                    if res["particles"] is not None:
+                        methods[f"{name} smoothed by particles"] = res["particles"]
             methods = {k: [r for r in v if r["t"] > eval_from] for k, v in methods.items()}
             n_steps = int(((p.events.t > w.t_start) & (p.events.t <= w.t_end)).sum())
             true_len = float(np.linalg.norm(np.diff(w.waypoints[:, 1:], axis=0), axis=1).sum())

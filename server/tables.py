@@ -231,6 +231,8 @@ class TrackingSession(Base):
     #: estimates in the track (the next estimate's idx); last_seq is the compare-and-set version
     track_length: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    #: the tracker's state right after opening, for a replay (``estimation.replay``; PF sessions only, else NULL)
+    opening_state: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
 
 
 class SessionBatch(Base):
@@ -243,6 +245,8 @@ class SessionBatch(Base):
     seq: Mapped[int] = mapped_column(Integer, primary_key=True)
     answer: Mapped[dict[str, Any]] = mapped_column()
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    #: the batch as the tracker saw it, for a replay (``estimation.replay.RecordedBatch``; PF sessions only, else NULL)
+    inputs: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True))
 
 
 class TrackEstimate(Base):

@@ -131,10 +131,17 @@ def get_track(
     sessions: Sessions,
     principal: Device,
     smoothed: Annotated[bool, Query(description=(
-        "Extension. true: the track after a fixed-interval Rauch–Tung–Striebel smoother over the stored "
-        "estimates (same length, times, floors and sources; each position uses the fixes after it too) — "
-        "the best after-the-fact path, for replay and analytics; covariances calibrated like the live "
-        "ones'. false (default): the live track as estimated."))] = False,
+        "Extension. true: the track after a fixed-interval smoother (same length, times, floors and "
+        "sources; each position uses the fixes after it too; `smoother` says which) — the best "
+        "after-the-fact path, for replay and analytics; covariances calibrated like the live ones'. "
+        "false (default): the live track as estimated."))] = False,
+    smoother: Annotated[Literal["rts", "particles"], Query(description=(
+        "Extension, with `smoothed=true`. `rts` (default): the RTS smoother over the stored estimates, for "
+        "every filter. `particles`: a `pf`/`pf-xy` session's own particles, smoothed along their ancestry "
+        "(fixed-lag path-space smoother) by replaying the session's kept inputs — better than `rts` where "
+        "walls shape the cloud, slightly worse in open space (see the README); 422 for another filter, 409 "
+        "when the session's kept inputs no longer reproduce its track (its site's plan changed since, or it "
+        "was stored before inputs were kept)."))] = "rts",
     since: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description=(
         "Extension. Only the estimates whose track index (0 = the first) is greater than this: the index "
         "of the last estimate already read. Default: from the start."))] = None,
@@ -146,8 +153,10 @@ def get_track(
     carries the extension `fix_refused: true`, one whose landmark snap it refused `snap_refused: true`.
     With `since` and/or `limit` (extension) one page of the live track; they do not combine with
     `smoothed=true` (422)."""
+    if smoother != "rts" and not smoothed:
+        raise InvalidField("smoother", "smoother applies to smoothed=true only")
     if since is None and limit is None:
-        track, marks = sessions.track_marked(principal, session_id, smoothed)
+        track, marks = sessions.track_marked(principal, session_id, smoothed, smoother)
         return [track_estimate_out(e, marks.get(i)) for i, e in enumerate(track)]
     if smoothed:
         raise InvalidField("smoothed", "smoothed=true does not combine with since or limit: "

@@ -18,6 +18,7 @@ batch and any process resumes it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, Protocol
 
@@ -135,6 +136,8 @@ class SessionEstimator:
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
         #: appends (squared Mahalanobis distance before any inflation, accepted)
         self.innovations: list[tuple[float, bool]] | None = None
+        #: called with the tracker after each estimate it makes (a replay's particle smoother; not stored)
+        self.on_record: Callable[[Tracker], None] | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -165,6 +168,8 @@ class SessionEstimator:
         n = selfcal.N_AUG  # (the smoother's state: an EKF's walk offset is not smoothed)
         self.full_state = (FullState.of(self.tracker.state_mean[:n], self.tracker.state_covariance[:n, :n], step)
                            if isinstance(self.tracker, selfcal.Calibrating) else None)
+        if self.on_record is not None:
+            self.on_record(self.tracker)
         return self.estimate
 
     def search_area(self) -> Area | None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 from sqlalchemy import Connection
 from sqlalchemy.orm import Session
@@ -27,11 +27,12 @@ from server.auth import Principal
 from server.db import Database
 from server.domain import MAX_BATCH_SCANS, MAX_BATCH_STEPS, BatchAnswer, FeedState, GateMarks, SessionInfo, floor_names
 from server.errors import Conflict, Invalid, NotFound, ServiceError, TooLarge
+from server.estimation.replay import RecordedBatch, RecordingFixes, replays, smoothed_by_replay
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.tracking.tuning import BadParam, check_params
-from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, Step
+from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, SiteMap, Step
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
 from server.store import models as model_store
@@ -44,6 +45,8 @@ MAX_ATTEMPTS = 20
 CROWD_MERGE_RADIUS_M = 1.0
 
 _Row = TypeVar("_Row", SessionInfo, FeedState)
+#: how a track is smoothed (``SessionService.track``)
+Smoother = Literal["rts", "particles"]
 
 
 @dataclass(frozen=True)
@@ -120,8 +123,9 @@ class SessionService:
                 walls = site_store.floor_walls(s, site_id, initial.floor, initial.building)
                 estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init",
                                            initial.building))
-            return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, est.to_dict(), estimates,
-                                     [est.full_state] if estimates else [])
+            state = est.to_dict()
+            return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, state, estimates,
+                                     [est.full_state] if estimates else [], opening_state=state if replays(filter) else None)
 
     def list_sessions(self, principal: Principal, site_id: int | None, status: str | None, limit: int) -> list[SessionInfo]:
         """The caller's sessions (every session for an admin key), newest first."""
@@ -133,25 +137,44 @@ class SessionService:
         with self.db.transaction() as s:
             return _visible(store.get_session(s, session_id), principal, session_id)
 
-    def track(self, principal: Principal, session_id: str, smoothed: bool = False) -> list[Estimate]:
-        """The stored track, oldest first; ``smoothed``: its fixed-interval (RTS) smoothing, kept in
-        the floors' walkable areas (``server.estimation.tracking.smoother``: same length, times,
-        floors, buildings and sources)."""
-        return self.track_marked(principal, session_id, smoothed)[0]
+    def track(self, principal: Principal, session_id: str, smoothed: bool = False,
+              smoother: Smoother = "rts") -> list[Estimate]:
+        """The stored track, oldest first; ``smoothed``: the same estimates (times, floors, buildings,
+        sources) smoothed, kept in the floors' walkable areas — by the fixed-interval RTS over the
+        stored estimates (``server.estimation.tracking.smoother``), or with ``smoother`` "particles" a
+        particle-filter session by its own particles, replayed from its kept inputs
+        (``server.estimation.replay``)."""
+        return self.track_marked(principal, session_id, smoothed, smoother)[0]
 
     def track_marked(
-        self, principal: Principal, session_id: str, smoothed: bool = False
+        self, principal: Principal, session_id: str, smoothed: bool = False, smoother: Smoother = "rts",
     ) -> tuple[list[Estimate], dict[int, GateMarks]]:
-        """The track (smoothed or not) and, by index, what the innovation gate refused at its
-        scan estimates (their fix or landmark snap; from the stored batch answers)."""
+        """The track (smoothed or not, ``track``) and, by index, what the innovation gate refused at its
+        scan estimates (their fix or landmark snap; from the stored batch answers). ``Invalid`` when the
+        particles are asked of a session that has none, ``Conflict`` when its kept inputs do not
+        reproduce its track."""
+        particles = smoothed and smoother == "particles"
         with self.db.transaction() as s:
             row = _visible(store.feed_state(s.connection(), session_id), principal, session_id)
+            filter = str(row.state.get("filter", ""))
+            if particles and not replays(filter):
+                raise Invalid([{"field": "smoother", "msg": f"smoother=particles needs a particle-filter session "
+                                                            f"(pf, pf-xy); session {session_id} is {filter}"}])
             track, states = store.track_with_states(s, session_id) if smoothed else (store.track(s, session_id), None)
             marks = store.gate_marks(s, session_id)
+            kept = store.replay_inputs(s, session_id) if particles else None
         if not smoothed:
             return track, marks
-        # the floors' walkable areas as the batches use them (the site's context, cached by revision)
-        return smooth_track(track, self.sites.get(row.site_id, row.site_revision).map.walkable, states), marks
+        # the site as the batches use it (its context, cached by revision)
+        site = self.sites.get(row.site_id, row.site_revision).map
+        if kept is None:
+            return smooth_track(track, site.walkable, states), marks
+        by_replay = _replayed(*kept, site, track)
+        if by_replay is None:
+            raise Conflict([{"field": "smoother", "msg": (
+                f"session {session_id}'s kept inputs do not reproduce its track (its site's plan changed since, "
+                "or it was stored before inputs were kept): only smoother=rts can smooth it")}])
+        return by_replay, marks
 
     def track_page(
         self, principal: Principal, session_id: str, since: int, limit: int | None
@@ -235,9 +258,11 @@ class SessionService:
             # 2. compute against that state
             site = self.sites.get(row.site_id, row.site_revision)
             est = SessionEstimator.from_dict(row.state)
+            fixes = ModelFixes(self.positioning, row.site_id, row.model_id, site.active_model)
+            recording = RecordingFixes(fixes) if replays(est.filter) else None
             try:
                 outcome = est.apply_batch(
-                    list(steps), list(scans), ModelFixes(self.positioning, row.site_id, row.model_id, site.active_model),
+                    list(steps), list(scans), fixes if recording is None else recording,
                     site.map, crowdsourcing=bool(site.settings.get("crowdsourcing")),
                 )
             except LateInputs as late:
@@ -253,11 +278,26 @@ class SessionService:
                     conn, session_id, expected_last_seq=row.last_seq, state=est.to_dict(), answer=answer,
                     first_idx=row.track_length, estimates=outcome.estimates, init_t=outcome.init_t,
                     states=outcome.states,
+                    inputs=None if recording is None else RecordedBatch(
+                        tuple(steps), tuple(scans), tuple(recording.answers)).to_dict(),
                 ):
                     _crowdsource(conn, row.site_id, outcome.crowd)
                     return answer
             # lost the race (nothing was written): start over from the stored state
         raise Conflict([{"field": "session", "msg": "too many concurrent writers on this session; retry"}])
+
+
+def _replayed(opening: dict | None, inputs: list[dict | None], site: SiteMap,
+              track: list[Estimate]) -> list[Estimate] | None:
+    """The track smoothed by replaying the session's kept inputs; None when some were not kept
+    (stored before they were) or the replay does not reproduce the track."""
+    if opening is None or any(i is None for i in inputs):
+        return None
+    try:
+        batches = [RecordedBatch.from_dict(i) for i in inputs if i is not None]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return smoothed_by_replay(opening, batches, site, track)
 
 
 def _marks_among(s: Session, session_id: str, rows: Sequence[tuple[int, Estimate]]) -> dict[int, GateMarks]:

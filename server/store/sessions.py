@@ -122,11 +122,13 @@ def _estimate(t: float | None, x: float, y: float, floor: int, c: list[list[floa
 def add_session(
     s: Session, session_id: str, site_id: int, owner_key: str, filter: str, model_id: int | None,
     state: dict, estimates: Sequence[Estimate], states: Sequence[FullState | None] = (),
+    opening_state: dict | None = None,
 ) -> SessionInfo:
-    """A new open session; ``estimates`` (the initial position, if given) start its track."""
+    """A new open session; ``estimates`` (the initial position, if given) start its track;
+    ``opening_state``: ``state`` kept as it opened, for a replay (None: not kept)."""
     row = TrackingSession(
         id=session_id, site_id=site_id, owner_key=owner_key, filter=filter, model_id=model_id,
-        status="open", state=state, last_seq=-1, track_length=len(estimates),
+        status="open", state=state, last_seq=-1, track_length=len(estimates), opening_state=opening_state,
     )
     s.add(row)
     s.flush()
@@ -206,6 +208,14 @@ def track_with_states(s: Session, session_id: str) -> tuple[list[Estimate], list
     ))
     return [_estimate(*row[:-1]) for row in rows], [None if row[-1] is None else FullState.from_dict(row[-1])
                                                      for row in rows]
+
+
+def replay_inputs(s: Session, session_id: str) -> tuple[dict | None, list[dict | None]]:
+    """The session's opening state and its batches' inputs in seq order (None where not kept)."""
+    opening = s.execute(select(_SESSIONS.c.opening_state).where(_SESSIONS.c.id == session_id)).scalar()
+    inputs: Sequence[dict | None] = s.execute(select(_BATCHES.c.inputs).where(_BATCHES.c.session_id == session_id)
+                       .order_by(_BATCHES.c.seq)).scalars().all()
+    return opening, list(inputs)
 
 
 def estimates_after(s: Session, session_id: str, after_idx: int, limit: int) -> list[tuple[int, Estimate]]:
@@ -324,12 +334,14 @@ def save_batch(
     estimates: Sequence[Estimate],
     init_t: float | None = None,
     states: Sequence[FullState | None] = (),
+    inputs: dict | None = None,
 ) -> bool:
     """Compare-and-set: store the batch's outcome only if the session is still open at ``expected_last_seq``.
 
     The UPDATE comes first, so it takes the row lock (PostgreSQL) or the write lock
     (SQLite) before anything else is written; a concurrent feeder of the same session
     finds ``last_seq`` moved and gets ``False`` (nothing written; it re-reads and retries).
+    ``inputs``: the batch as the tracker saw it, kept for a replay (None: not kept).
     """
     claimed = _CLAIM_SEQ.execute(conn, {
         "sid": session_id, "expected_seq": expected_last_seq, "new_state": state, "new_seq": answer.seq,
@@ -338,7 +350,8 @@ def save_batch(
     if claimed != 1:
         return False
     _INSERT_ANSWER.execute(
-        conn, {"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict(), "created_at": utcnow()})
+        conn, {"session_id": session_id, "seq": answer.seq, "answer": answer.to_dict(), "created_at": utcnow(),
+               "inputs": inputs})
     if estimates:
         _INSERT_ESTIMATES.execute_many(conn, _estimate_rows(session_id, first_idx, answer.seq, estimates, states))
     if init_t is not None:  # the initial estimate takes the time of the session's first input

@@ -9,7 +9,7 @@ from collections import deque
 
 import numpy as np
 import pytest
-from sqlalchemy import text
+from sqlalchemy import select, text, update
 
 from server.api.deps import session_service
 from server.errors import Invalid
@@ -17,6 +17,7 @@ from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Estimate, Fix
 from server.schemas import EstimateOut
 from server.services.sessions import SessionService
+from server.tables import SessionBatch, TrackingSession
 from tests.api.test_sessions import FLOORS, TRANSMITTERS, Located
 
 STEP_S, LENGTH_M, N_STEPS, SCAN_EVERY = 0.5, 0.7, 60, 4
@@ -206,3 +207,61 @@ def _same(a: list[dict], b: list[dict]) -> bool:
     return len(a) == len(b) and all(
         x["t"] == y["t"] and x["source"] == y["source"] and math.isclose(x["x"], y["x"], abs_tol=1e-9)
         and math.isclose(x["y"], y["y"], abs_tol=1e-9) for x, y in zip(a, b, strict=True))
+
+
+def test_a_particle_filter_session_is_smoothed_by_its_particles(device, site, scripted, live_server):
+    """pf with ``smoother=particles``: the session keeps its opening state and each batch's steps,
+    scans and fixes, and the smoothed track replays them with the particle smoother — the live
+    track's shape, better than it, and not the RTS's answer. A session whose kept inputs no longer
+    reproduce its track (here: a fix changed in the database), or one stored before they were kept,
+    gets a 409 that says so, while ``smoother=rts`` still smooths it."""
+    sid, truth = _walk(device, site, scripted, filter="pf")
+    url = f"/api/v1/sessions/{sid}/track"
+    live = device.get(url).json()
+    rts = device.get(url, params={"smoothed": "true"}).json()
+    answer = device.get(url, params={"smoothed": "true", "smoother": "particles"})
+    assert answer.status_code == 200, answer.text
+    particles = answer.json()
+    assert [(e["t"], e["source"], e["floor"]) for e in particles] == [(e["t"], e["source"], e["floor"]) for e in live]
+    live_err, smooth_err = _mean_error(live, truth), _mean_error(particles, truth)
+    print(f"mean error: live {live_err:.2f}, RTS {_mean_error(rts, truth):.2f}, particle-smoothed {smooth_err:.2f} m")
+    assert smooth_err < live_err
+    assert not _same(particles, rts)
+    assert _same(device.get(url, params={"smoothed": "true", "smoother": "rts"}).json(), rts)
+    db = live_server.app.state.db
+    batches = SessionBatch.__table__
+    with db.transaction() as s:
+        kept = s.execute(select(batches.c.seq, batches.c.inputs).where(batches.c.session_id == sid)
+                         .order_by(batches.c.seq)).all()
+        assert [seq for seq, _ in kept] == [0, 1] and all(i is not None for _, i in kept)
+        inputs = dict(kept[1][1])
+        first = next(i for i, f in enumerate(inputs["fixes"]) if "x" in f)
+        inputs["fixes"] = [*inputs["fixes"][:first], {**inputs["fixes"][first], "x": inputs["fixes"][first]["x"] + 5.0},
+                           *inputs["fixes"][first + 1:]]
+        s.execute(update(batches).where(batches.c.session_id == sid, batches.c.seq == 1).values(inputs=inputs))
+    tampered = device.get(url, params={"smoothed": "true", "smoother": "particles"})
+    assert tampered.status_code == 409, tampered.text
+    assert "do not reproduce its track" in tampered.text and "smoother=rts" in tampered.text
+    with db.transaction() as s:
+        s.execute(update(TrackingSession.__table__).where(TrackingSession.id == sid).values(opening_state=None))
+    assert device.get(url, params={"smoothed": "true", "smoother": "particles"}).status_code == 409
+    assert _same(device.get(url, params={"smoothed": "true"}).json(), rts)
+
+
+def test_only_a_particle_filter_session_keeps_its_inputs_and_has_particles_to_smooth(device, site, scripted,
+                                                                                      live_server):
+    sid, _ = _walk(device, site, scripted, filter="skpf")
+    with live_server.app.state.db.transaction() as s:
+        opening = s.execute(select(TrackingSession.opening_state).where(TrackingSession.id == sid)).scalar()
+        inputs = s.execute(select(SessionBatch.inputs).where(SessionBatch.session_id == sid)).scalars().all()
+    assert opening is None and inputs == [None, None]
+    answer = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true", "smoother": "particles"})
+    assert answer.status_code == 422 and "needs a particle-filter session" in answer.text and "skpf" in answer.text
+
+
+@pytest.mark.parametrize("params", [{"smoother": "particles"}, {"smoothed": "true", "smoother": "ffbsm"},
+                                    {"smoothed": "false", "smoother": "particles"}])
+def test_a_smoother_that_does_not_apply_is_refused(device, site, scripted, params):
+    sid, _ = _walk(device, site, scripted, filter="pf")
+    answer = device.get(f"/api/v1/sessions/{sid}/track", params=params)
+    assert answer.status_code == 422 and "smoother" in answer.text

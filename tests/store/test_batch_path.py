@@ -104,7 +104,8 @@ def _stored_batches(db, session_id: str) -> list[tuple]:
     """The stored batch rows as the driver returns them (no column type processing)."""
     with db.read() as conn:
         return [tuple(r) for r in conn.exec_driver_sql(
-            f"SELECT seq, answer, created_at FROM session_batches WHERE session_id = '{session_id}' ORDER BY seq")]
+            f"SELECT seq, answer, created_at, inputs FROM session_batches WHERE session_id = '{session_id}' "
+            "ORDER BY seq")]
 
 
 def test_the_batch_path_stores_what_core_stores(db, session_id):
@@ -115,14 +116,16 @@ def test_the_batch_path_stores_what_core_stores(db, session_id):
     from server.tables import SessionBatch, TrackEstimate, utcnow
 
     answer = BatchAnswer(0, STEP, 1, 0, (), ())
+    inputs = {"steps": [{"t": 1.5, "length_m": 0.7}], "scans": [], "fixes": [{"none": "nothing heard"}]}
     with db.write() as conn:
         assert sessions.save_batch(conn, session_id, expected_last_seq=-1, state={"v": 1}, answer=answer,
-                                   first_idx=1, estimates=[STEP])
+                                   first_idx=1, estimates=[STEP], inputs=inputs)
         conn.execute(insert(SessionBatch), [{"session_id": session_id, "seq": 1, "answer": answer.to_dict(),
-                                             "created_at": utcnow()}])
+                                             "created_at": utcnow(), "inputs": inputs}])
         conn.execute(insert(TrackEstimate), sessions._estimate_rows(session_id, 2, 1, [STEP]))
     direct, core = _stored_batches(db, session_id)
     assert direct[1] == core[1]  # the answer's JSON, as stored
+    assert direct[3] == core[3] and direct[3] is not None  # the kept inputs' JSON
     assert type(direct[2]) is type(core[2])
     if isinstance(core[2], str):  # SQLite: the same text format, a moment apart
         assert len(direct[2]) == len(core[2]) and direct[2][:10] == core[2][:10]
@@ -165,7 +168,7 @@ def test_a_driver_error_is_raised_as_sqlalchemy_raises_it(db, session_id):
                                    first_idx=1, estimates=[STEP])
     with pytest.raises(IntegrityError), db.write() as conn:  # the same seq stored twice
         sessions._INSERT_ANSWER.execute(conn, {"session_id": session_id, "seq": 0, "answer": {},
-                                               "created_at": START_TIME})
+                                               "created_at": START_TIME, "inputs": None})
 
 
 def test_a_locked_sqlite_database_is_an_operational_error(db, session_id):

@@ -176,6 +176,9 @@ class ParticleFilterXYTracker(Tracker):
     particles: np.ndarray  # (n, dim), set by reset() and _load_state()
     _grid: tuple[np.ndarray, np.ndarray] | None  # the particles' grid per column (lo, step; None: float32 values)
     weights: np.ndarray  # (n,), sum 1
+    #: a replay's record of descent (``particle_smoother``): for each particle, the row of the cloud at
+    #: the last ``take_lineage`` it descends from, −1 for one drawn anew; None (the live filter) keeps none
+    lineage: np.ndarray | None = None
 
     def __init__(self, initial_mean, initial_cov, walls=None, seed=None, **params):
         self._configure(walls, seed, **params)
@@ -369,7 +372,9 @@ class ParticleFilterXYTracker(Tracker):
         if len(inside) == 0:
             return None
         pick = inside[:n] if len(inside) >= n else inside[self.rng.integers(len(inside), size=n)]
-        out = old[systematic_resample(self.weights, float(self.rng.random()))].copy()
+        rows = systematic_resample(self.weights, float(self.rng.random()))
+        self._descend(rows)
+        out = old[rows].copy()
         out[:, :2] = pick
         self._keep_position_grid(grid)
         return out
@@ -396,6 +401,7 @@ class ParticleFilterXYTracker(Tracker):
             n = kld_count(self.particles[self.weights > 0, :2], p["kld_bin_m"], p["kld_epsilon"],
                           p["min_particles"], n)
         idx = systematic_resample(self.weights, float(self.rng.random()), n)
+        self._descend(idx)
         self.particles = np.asfortranarray(self.particles[idx])
         self.weights = weights_as_stored(np.full(n, 1.0 / n))
 
@@ -428,6 +434,19 @@ class ParticleFilterXYTracker(Tracker):
         self._grid = (lo, step)
         return snap(points, lo, step)
 
+    # -- descent (a replay's particle smoother) -------------------------------------------------
+    def _descend(self, rows: np.ndarray | None) -> None:
+        """The particles are now ``rows`` of the previous ones (None: positions drawn anew)."""
+        if self.lineage is not None:
+            self.lineage = np.full(self.params["n_particles"], -1) if rows is None else self.lineage[rows]
+
+    def take_lineage(self) -> np.ndarray:
+        """Each particle's row in the cloud at the previous call (−1: drawn anew since), and from now
+        on record descent from the cloud as it is (the first call: every particle its own row)."""
+        rows = np.arange(len(self.particles)) if self.lineage is None else self.lineage
+        self.lineage = np.arange(len(self.particles))
+        return rows
+
     # -- estimate -----------------------------------------------------------------
     @property
     def mean(self) -> np.ndarray:
@@ -442,6 +461,7 @@ class ParticleFilterXYTracker(Tracker):
         L = np.linalg.cholesky(as_cov(cov))
         self.particles = as_mean(mean) + self.rng.standard_normal((n, 2)) @ L.T
         self.weights = np.full(n, 1.0 / n)
+        self._descend(None)
         self._quantize()
 
     def inflate(self, factor: float) -> None:
@@ -715,6 +735,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
             cal = old[systematic_resample(self.weights, float(self.rng.random()), n), 2:]
         self.particles = np.column_stack((xy, cal))
         self.weights = np.full(n, 1.0 / n)
+        self._descend(None)
         self._quantize()
 
     def inflate(self, factor: float) -> None:
