@@ -12,7 +12,9 @@ headings are drawn at random, so no straight run forms; ``skpf, straight`` walks
 Last, a whole batch as ``benchmarks/sessions_load.py`` posts it (2 steps and a scan whose beacons
 give ranges, on its synthetic site without a plan but with its survey's grid, a fix near the walker
 standing in for the model's) through ``SessionEstimator``: restored from its JSON state, applied,
-stored again, as the server does per batch (its HTTP and database work aside), for ``pf`` and ``skpf``.
+stored again, as the server does per batch (its HTTP and database work aside), for ``pf`` and ``skpf``;
+and the pf session smoothed by its particles as ``GET …/track?smoothed=true&smoother=particles``
+serves it (every batch replayed from the inputs the session keeps), per batch and against a live batch.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +31,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.sessions_load import walk  # noqa: E402
+from server.estimation.replay import RecordedBatch, RecordingFixes, smoothed_by_replay  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking import make_tracker, tracker_from_dict, tracker_names  # noqa: E402
-from server.estimation.types import Beacon, Fix, Scan, SiteMap, Step, step_displacement  # noqa: E402
+from server.estimation.tracking.particle_smoother import DEFAULT_LAG  # noqa: E402
+from server.estimation.types import Beacon, Estimate, Fix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 from tests.helpers.synthetic import make_site  # noqa: E402
 
 WALLS = [[-50.0, y, 50.0, y] for y in (-20.0, 20.0)] + [[x, -50.0, x, 50.0] for x in (-30.0, 30.0)]
@@ -108,10 +113,14 @@ class BatchBench:
             fix = Fix(float(x), float(y), 0, np.eye(2) * 4.0)
             self.batches.append((steps, [Scan(c["t"], c["rss"]) for c in b["scans"]], fix))
         est = SessionEstimator(name, seed=0)
-        est.start([start["x"], start["y"]], None, 0, [], None, "init")
+        init = est.start([start["x"], start["y"]], None, 0, [], None, "init")
         self.state = json.loads(json.dumps(est.to_dict()))
         self.best = float("inf")
         self._fix: Fix | None = None
+        #: the last round's track and recorded batches (as the server keeps a pf session's), for ``replay_round``
+        self.track: list[Estimate] = [replace(init, t=self.batches[0][0][0].t)]
+        self.recorded: list[RecordedBatch] = []
+        self.best_replay = float("inf")
 
     def fix(self, scan: Scan, near) -> Fix:  # (the ``FixSource``)
         assert self._fix is not None
@@ -119,13 +128,24 @@ class BatchBench:
 
     def run_round(self) -> None:
         state = self.state
+        track, recorded = self.track[:1], []
         t0 = time.perf_counter()
         for steps, scans, fix in self.batches:
             self._fix = fix
             est = SessionEstimator.from_dict(state)
-            est.apply_batch(steps, scans, self, self.site)
+            recording = RecordingFixes(self)
+            track += est.apply_batch(steps, scans, recording, self.site).estimates
+            recorded.append(RecordedBatch(tuple(steps), tuple(scans), tuple(recording.answers)))
             state = json.loads(json.dumps(est.to_dict()))
         self.best = min(self.best, (time.perf_counter() - t0) / len(self.batches) * 1e6)
+        self.track, self.recorded = track, recorded
+
+    def replay_round(self) -> None:
+        """The whole session smoothed by its particles as ``smoother=particles`` serves it (µs per batch)."""
+        t0 = time.perf_counter()
+        if smoothed_by_replay(self.state, self.recorded, self.site, self.track) is None:
+            raise RuntimeError("the replay did not reproduce the track")
+        self.best_replay = min(self.best_replay, (time.perf_counter() - t0) / len(self.batches) * 1e6)
 
 
 def measure(benches: dict[str, Bench], rounds: int = ROUNDS) -> dict[str, dict[str, float]]:
@@ -160,8 +180,12 @@ def main() -> None:
     for _ in range(args.rounds):
         for b in batch.values():
             b.run_round()
+        batch["pf"].replay_round()
+    pf_batch = batch["pf"]
     print(f"a sessions_load batch (2 steps + 1 scan, state restored and stored through JSON): "
-          f"pf {batch['pf'].best:.0f} µs, skpf {batch['skpf'].best:.0f} µs, ratio {batch['pf'].best / batch['skpf'].best:.1f}x")
+          f"pf {pf_batch.best:.0f} µs, skpf {batch['skpf'].best:.0f} µs, ratio {pf_batch.best / batch['skpf'].best:.1f}x")
+    print(f"the pf session smoothed by its particles (smoother=particles: replayed from its kept inputs, lag "
+          f"{DEFAULT_LAG}): {pf_batch.best_replay:.0f} µs per batch, {pf_batch.best_replay / pf_batch.best:.2f}x a live batch")
 
 
 if __name__ == "__main__":

@@ -43,6 +43,8 @@ from server.store import sites as site_store
 MAX_ATTEMPTS = 20
 #: crowd fingerprints closer than this (same floor) are merged
 CROWD_MERGE_RADIUS_M = 1.0
+#: ``smoother=particles`` replays at most this many batches (≈ 1.5 ms each: 15 s of one request's CPU)
+MAX_REPLAY_BATCHES = 10_000
 
 _Row = TypeVar("_Row", SessionInfo, FeedState)
 #: how a track is smoothed (``SessionService.track``)
@@ -160,6 +162,10 @@ class SessionService:
             if particles and not replays(filter):
                 raise Invalid([{"field": "smoother", "msg": f"smoother=particles needs a particle-filter session "
                                                             f"(pf, pf-xy); session {session_id} is {filter}"}])
+            if particles and row.last_seq + 1 > MAX_REPLAY_BATCHES:
+                raise Conflict([{"field": "smoother", "msg": (
+                    f"session {session_id} has {row.last_seq + 1} batches; smoother=particles replays at most "
+                    f"{MAX_REPLAY_BATCHES}: only smoother=rts can smooth it")}])
             track, states = store.track_with_states(s, session_id) if smoothed else (store.track(s, session_id), None)
             marks = store.gate_marks(s, session_id)
             kept = store.replay_inputs(s, session_id) if particles else None

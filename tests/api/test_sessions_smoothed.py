@@ -16,6 +16,7 @@ from server.errors import Invalid
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Estimate, Fix
 from server.schemas import EstimateOut
+from server.services import sessions as sessions_service
 from server.services.sessions import SessionService
 from server.tables import SessionBatch, TrackingSession
 from tests.api.test_sessions import FLOORS, TRANSMITTERS, Located
@@ -265,3 +266,12 @@ def test_a_smoother_that_does_not_apply_is_refused(device, site, scripted, param
     sid, _ = _walk(device, site, scripted, filter="pf")
     answer = device.get(f"/api/v1/sessions/{sid}/track", params=params)
     assert answer.status_code == 422 and "smoother" in answer.text
+
+
+def test_a_session_too_long_to_replay_is_refused_with_a_conflict(device, site, scripted, monkeypatch):
+    sid, _ = _walk(device, site, scripted, filter="pf")  # two batches
+    monkeypatch.setattr(sessions_service, "MAX_REPLAY_BATCHES", 1)
+    url = f"/api/v1/sessions/{sid}/track"
+    answer = device.get(url, params={"smoothed": "true", "smoother": "particles"})
+    assert answer.status_code == 409 and "has 2 batches" in answer.text and "at most 1" in answer.text
+    assert device.get(url, params={"smoothed": "true"}).status_code == 200
