@@ -78,11 +78,12 @@ class _Fixes:
         return Fix(x, y, 0, np.eye(2) * 1.44, shared_share=None)
 
 
-def _live(filter: str = "pf", batch: int = 10):
-    """The walk as the server runs it: opened with a start, each batch from the stored (JSON) state."""
+def _live(filter: str = "pf", batch: int = 10, start: bool = True):
+    """The walk as the server runs it: opened with a start (``start``; else on its first fix), each
+    batch from the stored (JSON) state."""
     steps, scans, fixes, truth = _walk()
     est = SessionEstimator(filter, seed=11)
-    track = [est.start([0.0, 0.0], None, 0, [], None, "init")]
+    track = [est.start([0.0, 0.0], None, 0, [], None, "init")] if start else []
     opening = json.loads(json.dumps(est.to_dict()))
     source, site, recorded = _Fixes(fixes), SiteMap(), []
     for k in range(0, len(steps), batch):
@@ -93,7 +94,8 @@ def _live(filter: str = "pf", batch: int = 10):
         track += est.apply_batch(bs, bc, recording, site).estimates
         recorded.append(RecordedBatch.from_dict(json.loads(json.dumps(
             RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers)).to_dict()))))
-    track[0] = replace(track[0], t=steps[0].t)  # (the server dates the start with the first input)
+    if start:
+        track[0] = replace(track[0], t=steps[0].t)  # (the server dates the start with the first input)
     return opening, recorded, site, track, truth
 
 
@@ -111,6 +113,31 @@ def test_a_replayed_pf_session_reproduces_its_track_and_smooths_it():
     assert smooth_err < 0.9 * live_err
     for a, b in zip(track, smoothed, strict=True):  # never wider than live
         assert np.linalg.eigvalsh(np.array(a.covariance) - np.array(b.covariance)).min() > -1e-6
+
+
+def test_a_session_started_on_its_first_fix_is_replayed_too():
+    opening, batches, site, track, truth = _live(start=False)
+    assert opening["tracker"] is None and track[0].source == "scan"
+    smoothed = smoothed_by_replay(opening, batches, site, track)
+    assert smoothed is not None and len(smoothed) == len(track)
+    assert _error(smoothed, truth) < _error(track, truth)
+
+
+def test_a_cloud_drawn_anew_ends_the_paths_before_it():
+    """The estimates before a reset are smoothed by the last cloud before it, not by the new one."""
+    pf = make_tracker("pf-xy", [0.0, 0.0], np.eye(2), seed=3, n_particles=300)
+    smoother = PathSmoother(lag=10)
+    smoother.observe(pf)
+    pf.predict(Step(0.5, 0.7, 90.0))
+    pf.update(Fix(0.9, 0.0, 0, np.eye(2) * 0.2))
+    smoother.observe(pf)
+    before = pf.mean.copy()
+    pf.reset([30.0, 30.0], np.eye(2))
+    smoother.observe(pf)
+    out = smoother.finish()
+    assert len(out) == 3
+    np.testing.assert_allclose(out[1].mean, before, atol=1e-9)  # its own cloud, the last before the reset
+    assert math.dist(out[0].mean, (30.0, 30.0)) > 20 and math.dist(out[2].mean, (30.0, 30.0)) < 3
 
 
 def test_a_replay_that_does_not_reproduce_the_track_gives_none():
