@@ -33,6 +33,7 @@ from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.tracking.tuning import BadParam, check_params
 from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, SiteMap, Step
+from server.services.lru import Lru
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
 from server.store import models as model_store
@@ -45,6 +46,9 @@ MAX_ATTEMPTS = 20
 CROWD_MERGE_RADIUS_M = 1.0
 #: ``smoother=particles`` replays at most this many batches (≈ 1.5 ms each: 15 s of one request's CPU)
 MAX_REPLAY_BATCHES = 10_000
+#: particle-smoothed tracks kept per process, by (session, last applied seq, site revision): a track read
+#: again costs its reads, not its replay
+PARTICLE_TRACKS_CACHED = 32
 
 _Row = TypeVar("_Row", SessionInfo, FeedState)
 #: how a track is smoothed (``SessionService.track``)
@@ -92,6 +96,7 @@ class SessionService:
         self.db = db
         self.positioning = positioning
         self.sites = SiteContexts(db)
+        self._particle_tracks: Lru[tuple[str, int, str], list[Estimate]] = Lru(PARTICLE_TRACKS_CACHED)
 
     # -- open / read / close ---------------------------------------------------------------
     def open(
@@ -166,6 +171,10 @@ class SessionService:
                 raise Conflict([{"field": "smoother", "msg": (
                     f"session {session_id} has {row.last_seq + 1} batches; smoother=particles replays at most "
                     f"{MAX_REPLAY_BATCHES}: only smoother=rts can smooth it")}])
+            key = (session_id, row.last_seq, row.site_revision)
+            cached = self._particle_tracks.get(key) if particles else None
+            if cached is not None:
+                return cached, store.gate_marks(s, session_id)
             track, states = store.track_with_states(s, session_id) if smoothed else (store.track(s, session_id), None)
             marks = store.gate_marks(s, session_id)
             kept = store.replay_inputs(s, session_id) if particles else None
@@ -180,6 +189,7 @@ class SessionService:
             raise Conflict([{"field": "smoother", "msg": (
                 f"session {session_id}'s kept inputs do not reproduce its track (its site's plan changed since, "
                 "or it was stored before inputs were kept): only smoother=rts can smooth it")}])
+        self._particle_tracks.put(key, by_replay)
         return by_replay, marks
 
     def track_page(

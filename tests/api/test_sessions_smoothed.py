@@ -13,6 +13,7 @@ from sqlalchemy import select, text, update
 
 from server.api.deps import session_service
 from server.errors import Invalid
+from server.estimation.replay import smoothed_by_replay
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.types import Estimate, Fix
 from server.schemas import EstimateOut
@@ -275,3 +276,31 @@ def test_a_session_too_long_to_replay_is_refused_with_a_conflict(device, site, s
     answer = device.get(url, params={"smoothed": "true", "smoother": "particles"})
     assert answer.status_code == 409 and "has 2 batches" in answer.text and "at most 1" in answer.text
     assert device.get(url, params={"smoothed": "true"}).status_code == 200
+
+
+def test_a_particle_smoothed_track_read_again_is_not_replayed_again(device, site, live_server, monkeypatch):
+    """One service per process (as the app holds it): a second read of the same session at the same
+    seq and site revision answers from the cache; a new batch replays again."""
+    fake = ScriptedPositioning()
+    service = SessionService(live_server.app.state.db, fake)
+    live_server.app.dependency_overrides[session_service] = lambda: service
+    replays = []
+
+    def counted(*args, **kwargs):
+        replays.append(1)
+        return smoothed_by_replay(*args, **kwargs)
+
+    monkeypatch.setattr(sessions_service, "smoothed_by_replay", counted)
+    try:
+        sid, _ = _walk(device, site, fake, filter="pf")
+        url, params = f"/api/v1/sessions/{sid}/track", {"smoothed": "true", "smoother": "particles"}
+        first = device.get(url, params=params).json()
+        assert device.get(url, params=params).json() == first and len(replays) == 1
+        t = first[-1]["t"] + 0.5
+        answer = device.post(f"/api/v1/sessions/{sid}/batches",
+                             json={"seq": 2, "steps": [{"t": t, "length_m": 0.7, "heading_deg": 90.0}], "scans": []})
+        assert answer.status_code == 200, answer.text
+        third = device.get(url, params=params).json()
+        assert len(third) == len(first) + 1 and len(replays) == 2
+    finally:
+        live_server.app.dependency_overrides.pop(session_service)
