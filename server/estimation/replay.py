@@ -8,8 +8,8 @@ generator, so a session opened from its opening state (``SessionEstimator.to_dic
 (``RecordedBatch``: the model may have been retrained since), repeats the live filter exactly.
 ``smoothed_by_replay`` does that with a ``PathSmoother`` following the particles, checks that
 the replay reproduces the stored track estimate for estimate, and returns the path-space smoothed
-track — or None when it does not reproduce (the site's plan or the code changed since, or the
-session was stored before its inputs were), and the caller smooths the moments instead.
+track — or None when it does not reproduce (the site's plan or the PF's draws changed since), and
+the caller says so (the server: 409, while the RTS over the stored moments still smooths it).
 """
 
 from __future__ import annotations

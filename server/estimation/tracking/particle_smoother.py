@@ -5,14 +5,14 @@ A particle's ancestors are a path through the walk: the particles that survive l
 measurements are the ones whose past fitted them, so the weighted positions, at an earlier
 estimate, of the ancestors of a later cloud's particles are that estimate smoothed by the
 measurements between them. ``PathSmoother`` follows a ``ParticleFilterXYTracker`` (the seed
-form and the self-calibrating PF) estimate by estimate: it keeps, for each particle, the positions
-of its ancestors at the last ``lag`` estimates (re-indexed at every resampling through the
-tracker's ``take_lineage``), and gives each estimate the weighted mean and covariance of those
+form and the self-calibrating PF) estimate by estimate: it keeps the clouds of the last ``lag``
+estimates and, for each current particle, the row of its ancestor in each (re-indexed at every
+resampling through the tracker's ``take_lineage``), and gives each estimate the weighted mean and covariance of those
 positions under the weights of the cloud ``lag`` estimates later (the last cloud's, for the
 walk's last ``lag`` estimates). A cloud drawn anew (a floor change, a reset) ends every path: the
 estimates before it are smoothed with the cloud before it.
 
-Bounded memory (``lag`` × particles × 2 floats) and one pass, so it serves a replay of a whole
+Bounded memory (``lag`` × particles × (2 floats + a row)) and one pass, so it serves a replay of a whole
 session; a longer lag smooths more but the paths coalesce onto fewer ancestors the further back
 they reach (path degeneracy), which narrows the covariance (``PathSmoother`` widens it back by
 the ancestors' effective count): ``DEFAULT_LAG`` is where both were measured.
