@@ -140,7 +140,7 @@ def get_track(
         "every filter. `particles`: a `pf`/`pf-xy` session's own particles, smoothed along their ancestry "
         "(fixed-lag path-space smoother) by replaying the session's kept inputs — better than `rts` where "
         "walls shape the cloud, slightly worse in open space (see the README); 422 for another filter, 409 "
-        "when the session's kept inputs no longer reproduce its track (its site's plan changed since, or it "
+        "when the session's kept inputs no longer reproduce its track (its site's plan or transmitters changed since, or it "
         "was stored before inputs were kept) or it has more than 10,000 batches."))] = "rts",
     since: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description=(
         "Extension. Only the estimates whose track index (0 = the first) is greater than this: the index "

@@ -8,14 +8,15 @@ generator, so a session opened from its opening state (``SessionEstimator.to_dic
 (``RecordedBatch``: the model may have been retrained since), repeats the live filter exactly.
 ``smoothed_by_replay`` does that with a ``PathSmoother`` following the particles, checks that
 the replay reproduces the stored track estimate for estimate, and returns the path-space smoothed
-track — or None when it does not reproduce (the site's plan or the PF's draws changed since), and
+track — or None when it does not reproduce (the site's plan, transmitters or the PF's draws changed
+since; the survey's grid, which a retrain may move, is recorded with each batch), and
 the caller says so (the server: 409, while the RTS over the stored moments still smooths it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -38,21 +39,29 @@ def replays(filter: str) -> bool:
 
 @dataclass(frozen=True)
 class RecordedBatch:
-    """One applied batch as the tracker saw it: its steps and scans, and the fix source's answers
-    in the order it was asked (a ``Fix``, or why it gave none)."""
+    """One applied batch as the tracker saw it: its steps and scans, the fix source's answers in the
+    order it was asked (a ``Fix``, or why it gave none), and the survey's grid directions by
+    (building, level) that the site had then (``SiteMap.grids``: they come from the active model, so
+    a retrain may move them; None: not recorded, the site's current ones apply)."""
 
     steps: tuple[Step, ...]
     scans: tuple[Scan, ...]
     fixes: tuple[Fix | str, ...]
+    grids: dict[tuple[int, int], float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"steps": [asdict(s) for s in self.steps], "scans": [asdict(s) for s in self.scans],
-                "fixes": [_fix_dict(f) for f in self.fixes]}
+        out: dict[str, Any] = {"steps": [asdict(s) for s in self.steps], "scans": [asdict(s) for s in self.scans],
+                               "fixes": [_fix_dict(f) for f in self.fixes]}
+        if self.grids is not None:
+            out["grids"] = [[b, level, deg] for (b, level), deg in self.grids.items()]
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RecordedBatch:
+        grids = d.get("grids")
         return cls(tuple(Step(**s) for s in d["steps"]), tuple(Scan(**s) for s in d["scans"]),
-                   tuple(_fix_of(f) for f in d["fixes"]))
+                   tuple(_fix_of(f) for f in d["fixes"]),
+                   None if grids is None else {(int(b), int(level)): float(deg) for b, level, deg in grids})
 
 
 def _fix_dict(f: Fix | str) -> dict[str, Any]:
@@ -126,7 +135,8 @@ def smoothed_by_replay(opening: dict[str, Any], batches: Sequence[RecordedBatch]
         for batch in batches:
             est = SessionEstimator.from_dict(est.to_dict())  # as live: each batch from the stored state
             est.on_record = observe
-            outcome = est.apply_batch(list(batch.steps), list(batch.scans), _Recorded(batch.fixes), site)
+            as_then = site if batch.grids is None else replace(site, grids=batch.grids)
+            outcome = est.apply_batch(list(batch.steps), list(batch.scans), _Recorded(batch.fixes), as_then)
             replayed.extend(outcome.estimates)
     except (_NotReproduced, ValueError, KeyError, TypeError):
         return None

@@ -187,7 +187,7 @@ class SessionService:
         by_replay = _replayed(*kept, site, track)
         if by_replay is None:
             raise Conflict([{"field": "smoother", "msg": (
-                f"session {session_id}'s kept inputs do not reproduce its track (its site's plan changed since, "
+                f"session {session_id}'s kept inputs do not reproduce its track (its site's plan or transmitters changed since, "
                 "or it was stored before inputs were kept): only smoother=rts can smooth it")}])
         self._particle_tracks.put(key, by_replay)
         return by_replay, marks
@@ -295,7 +295,7 @@ class SessionService:
                     first_idx=row.track_length, estimates=outcome.estimates, init_t=outcome.init_t,
                     states=outcome.states,
                     inputs=None if recording is None else RecordedBatch(
-                        tuple(steps), tuple(scans), tuple(recording.answers)).to_dict(),
+                        tuple(steps), tuple(scans), tuple(recording.answers), dict(site.map.grids)).to_dict(),
                 ):
                     _crowdsource(conn, row.site_id, outcome.crowd)
                     return answer

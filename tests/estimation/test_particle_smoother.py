@@ -78,14 +78,14 @@ class _Fixes:
         return Fix(x, y, 0, np.eye(2) * 1.44, shared_share=None)
 
 
-def _live(filter: str = "pf", batch: int = 10, start: bool = True):
+def _live(filter: str = "pf", batch: int = 10, start: bool = True, grids: dict | None = None):
     """The walk as the server runs it: opened with a start (``start``; else on its first fix), each
-    batch from the stored (JSON) state."""
+    batch from the stored (JSON) state; the site's survey grid ``grids`` (none by default)."""
     steps, scans, fixes, truth = _walk()
     est = SessionEstimator(filter, seed=11)
     track = [est.start([0.0, 0.0], None, 0, [], None, "init")] if start else []
     opening = json.loads(json.dumps(est.to_dict()))
-    source, site, recorded = _Fixes(fixes), SiteMap(), []
+    source, site, recorded = _Fixes(fixes), SiteMap(grids=dict(grids or {})), []
     for k in range(0, len(steps), batch):
         t0, t1 = steps[k].t, steps[min(k + batch, len(steps)) - 1].t + 0.4
         bs, bc = steps[k:k + batch], [s for s in scans if t0 <= s.t < t1]
@@ -93,7 +93,7 @@ def _live(filter: str = "pf", batch: int = 10, start: bool = True):
         recording = RecordingFixes(source)
         track += est.apply_batch(bs, bc, recording, site).estimates
         recorded.append(RecordedBatch.from_dict(json.loads(json.dumps(
-            RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers)).to_dict()))))
+            RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers), dict(site.grids)).to_dict()))))
     if start:
         track[0] = replace(track[0], t=steps[0].t)  # (the server dates the start with the first input)
     return opening, recorded, site, track, truth
@@ -140,6 +140,17 @@ def test_a_cloud_drawn_anew_ends_the_paths_before_it():
     assert math.dist(out[0].mean, (30.0, 30.0)) > 20 and math.dist(out[2].mean, (30.0, 30.0)) < 3
 
 
+def test_the_replay_uses_the_survey_grid_each_batch_had():
+    """The survey's grid comes from the site's active model, so a retrain may move it after the walk:
+    the replay takes the grid each batch recorded, and without it (a record that lacks it) the
+    moved grid makes the PF weigh its heading runs differently and the replay no longer reproduces."""
+    opening, batches, _, track, _ = _live(grids={(0, 0): 0.0})
+    assert all(b.grids == {(0, 0): 0.0} for b in batches)
+    retrained = SiteMap(grids={(0, 0): 20.0})
+    assert smoothed_by_replay(opening, batches, retrained, track) is not None
+    assert smoothed_by_replay(opening, [replace(b, grids=None) for b in batches], retrained, track) is None
+
+
 def test_a_replay_that_does_not_reproduce_the_track_gives_none():
     opening, batches, site, track, _ = _live()
     assert smoothed_by_replay(opening, batches[:-1], site, track) is None  # a batch missing
@@ -177,9 +188,12 @@ def test_the_path_smoother_rejects_a_negative_lag():
 
 def test_a_recorded_batch_survives_json():
     batch = RecordedBatch((Step(1.0, 0.7, 90.0),), (Scan(1.2, {"ble:x": -70.0}, 45.0),),
-                          (Fix(1.0, 2.0, 1, np.diag([2.0, 3.0]), building=2, shared_share=0.4), "nothing heard"))
+                          (Fix(1.0, 2.0, 1, np.diag([2.0, 3.0]), building=2, shared_share=0.4), "nothing heard"),
+                          {(2, 1): 12.5})
     back = RecordedBatch.from_dict(json.loads(json.dumps(batch.to_dict())))
     assert back.steps == batch.steps and back.scans == batch.scans and back.fixes[1] == "nothing heard"
+    assert back.grids == {(2, 1): 12.5}
+    assert RecordedBatch.from_dict({**batch.to_dict(), "grids": None}).grids is None
     f = back.fixes[0]
     assert isinstance(f, Fix) and (f.x, f.y, f.floor, f.building, f.shared_share) == (1.0, 2.0, 1, 2, 0.4)
     np.testing.assert_array_equal(f.covariance, np.diag([2.0, 3.0]))
