@@ -68,7 +68,7 @@ from server.estimation.building_grid import survey_grids  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
 from server.estimation.floorplan import Walkable  # noqa: E402
-from server.estimation.replay import RecordedBatch, RecordingFixes, replays, smoothed_by_replay  # noqa: E402
+from server.estimation.replay import RecordingFixes, replays, smoothed_by_replay  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.landmarks import LandmarkCorrector  # noqa: E402
 from server.estimation.tracking.particle_smoother import DEFAULT_LAG  # noqa: E402
@@ -374,7 +374,7 @@ def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Re
         est.innovations = []
         recording = RecordingFixes(fixes)
         batch = est.apply_batch(bs, bc, recording, site)
-        out.batches.append(RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers)))
+        out.batches.append(recording.batch(bs, bc))
         out.innovations += est.innovations
         out.track += batch.estimates
         out.states += batch.states

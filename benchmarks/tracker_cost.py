@@ -135,7 +135,7 @@ class BatchBench:
             est = SessionEstimator.from_dict(state)
             recording = RecordingFixes(self)
             track += est.apply_batch(steps, scans, recording, self.site).estimates
-            recorded.append(RecordedBatch(tuple(steps), tuple(scans), tuple(recording.answers)))
+            recorded.append(recording.batch(steps, scans))
             state = json.loads(json.dumps(est.to_dict()))
         self.best = min(self.best, (time.perf_counter() - t0) / len(self.batches) * 1e6)
         self.track, self.recorded = track, recorded

@@ -94,6 +94,11 @@ class RecordingFixes:
         self.answers.append(f)
         return f
 
+    def batch(self, steps: Sequence[Step], scans: Sequence[Scan],
+              grids: dict[tuple[int, int], float] | None = None) -> RecordedBatch:
+        """The batch just applied with these answers, as ``smoothed_by_replay`` replays it."""
+        return RecordedBatch(tuple(steps), tuple(scans), tuple(self.answers), grids)
+
 
 class _NotReproduced(Exception):
     """The replay asked for more fixes than were recorded."""

@@ -294,8 +294,7 @@ class SessionService:
                     conn, session_id, expected_last_seq=row.last_seq, state=est.to_dict(), answer=answer,
                     first_idx=row.track_length, estimates=outcome.estimates, init_t=outcome.init_t,
                     states=outcome.states,
-                    inputs=None if recording is None else RecordedBatch(
-                        tuple(steps), tuple(scans), tuple(recording.answers), dict(site.map.grids)).to_dict(),
+                    inputs=None if recording is None else recording.batch(steps, scans, dict(site.map.grids)).to_dict(),
                 ):
                     _crowdsource(conn, row.site_id, outcome.crowd)
                     return answer

@@ -93,7 +93,7 @@ def _live(filter: str = "pf", batch: int = 10, start: bool = True, grids: dict |
         recording = RecordingFixes(source)
         track += est.apply_batch(bs, bc, recording, site).estimates
         recorded.append(RecordedBatch.from_dict(json.loads(json.dumps(
-            RecordedBatch(tuple(bs), tuple(bc), tuple(recording.answers), dict(site.grids)).to_dict()))))
+            recording.batch(bs, bc, dict(site.grids)).to_dict()))))
     if start:
         track[0] = replace(track[0], t=steps[0].t)  # (the server dates the start with the first input)
     return opening, recorded, site, track, truth
