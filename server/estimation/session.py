@@ -136,8 +136,8 @@ class SessionEstimator:
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
         #: appends (squared Mahalanobis distance before any inflation, accepted)
         self.innovations: list[tuple[float, bool]] | None = None
-        #: called with the tracker after each estimate it makes (a replay's particle smoother; not stored)
-        self.on_record: Callable[[Tracker], None] | None = None
+        #: called with the tracker and each estimate it makes (a replay's particle smoother; not stored)
+        self.on_record: Callable[[Tracker, Estimate], None] | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -169,7 +169,7 @@ class SessionEstimator:
         self.full_state = (FullState.of(self.tracker.state_mean[:n], self.tracker.state_covariance[:n, :n], step)
                            if isinstance(self.tracker, selfcal.Calibrating) else None)
         if self.on_record is not None:
-            self.on_record(self.tracker)
+            self.on_record(self.tracker, self.estimate)
         return self.estimate
 
     def search_area(self) -> Area | None:

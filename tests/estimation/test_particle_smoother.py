@@ -127,13 +127,13 @@ def test_a_cloud_drawn_anew_ends_the_paths_before_it():
     """The estimates before a reset are smoothed by the last cloud before it, not by the new one."""
     pf = make_tracker("pf-xy", [0.0, 0.0], np.eye(2), seed=3, n_particles=300)
     smoother = PathSmoother(lag=10)
-    smoother.observe(pf)
+    smoother.observe(pf, pf.covariance)
     pf.predict(Step(0.5, 0.7, 90.0))
     pf.update(Fix(0.9, 0.0, 0, np.eye(2) * 0.2))
-    smoother.observe(pf)
+    smoother.observe(pf, pf.covariance)
     before = pf.mean.copy()
     pf.reset([30.0, 30.0], np.eye(2))
-    smoother.observe(pf)
+    smoother.observe(pf, pf.covariance)
     out = smoother.finish()
     assert len(out) == 3
     np.testing.assert_allclose(out[1].mean, before, atol=1e-9)  # its own cloud, the last before the reset

@@ -75,9 +75,10 @@ class PathSmoother:
         self._weights: np.ndarray | None = None  # the last observed cloud's weights
         self._done: list[Smoothed] = []
 
-    def observe(self, tracker: ParticleFilterXYTracker) -> None:
-        """The tracker has just made an estimate: trace the pending estimates' ancestors through its
-        resamplings since the last one, add its cloud, and smooth the estimate ``lag`` back."""
+    def observe(self, tracker: ParticleFilterXYTracker, covariance: np.ndarray) -> None:
+        """The tracker has just made an estimate, of the cloud's ``covariance``: trace the pending
+        estimates' ancestors through its resamplings since the last one, add its cloud, and smooth
+        the estimate ``lag`` back."""
         rows = tracker.take_lineage()
         if self._pending:
             if rows.min() < 0 or rows.max() >= self._n:  # drawn anew: the paths end with the cloud before
@@ -87,7 +88,7 @@ class PathSmoother:
                     p.ancestors = p.ancestors[rows]
         positions = np.array(tracker.particles[:, :2], float)
         self._n = len(positions)
-        self._pending.append(_Pending(positions, np.arange(self._n), tracker.covariance, tracker.walkable))
+        self._pending.append(_Pending(positions, np.arange(self._n), covariance, tracker.walkable))
         self._weights = np.array(tracker.weights, float)
         if len(self._pending) > self.lag:
             self._emit(len(self._pending) - self.lag)
