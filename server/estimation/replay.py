@@ -126,17 +126,17 @@ def smoothed_by_replay(opening: dict[str, Any], batches: Sequence[RecordedBatch]
     not reproduce the track (then nothing here can be trusted)."""
     smoother = PathSmoother(lag)
 
-    def observe(tracker: Tracker, estimate: Estimate) -> None:
+    def observe(tracker: Tracker, estimate: Estimate, own: np.ndarray) -> None:
         if not isinstance(tracker, ParticleFilterXYTracker):
             raise _NotReproduced
-        smoother.observe(tracker, np.asarray(estimate.covariance, float))
+        smoother.observe(tracker, own, np.asarray(estimate.covariance, float) - own)
 
     try:
         est = SessionEstimator.from_dict(opening)
         replayed: list[Estimate] = []
         if est.estimate is not None and est.tracker is not None:  # the given start
             replayed.append(est.estimate)
-            observe(est.tracker, est.estimate)
+            observe(est.tracker, est.estimate, np.asarray(est.estimate.covariance, float))
         for batch in batches:
             est = SessionEstimator.from_dict(est.to_dict())  # as live: each batch from the stored state
             est.on_record = observe

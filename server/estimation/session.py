@@ -39,6 +39,7 @@ from server.estimation.tracking import (
 from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
+from server.estimation.tracking.shared_error import SharedFixError
 from server.estimation.types import (
     Area,
     BatchOutcome,
@@ -131,13 +132,16 @@ class SessionEstimator:
         self.gated_in_a_row = 0
         #: how much this session's fixes scatter against their own covariance (fixnoise.py)
         self.fix_noise = FixNoiseScale()
+        #: what the walk's fixes' shared error adds to the tracker's covariance (shared_error.py)
+        self.shared_error = SharedFixError()
         #: the site's walls the tracker was last given (not stored: they come from the site)
         self._plan_walls: list | None = None
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
         #: appends (squared Mahalanobis distance before any inflation, accepted)
         self.innovations: list[tuple[float, bool]] | None = None
-        #: called with the tracker and each estimate it makes (a replay's particle smoother; not stored)
-        self.on_record: Callable[[Tracker, Estimate], None] | None = None
+        #: called with the tracker, each estimate it makes and the tracker's own position covariance
+        #: there (the estimate's less ``shared_error``'s excess): a replay's particle smoother; not stored
+        self.on_record: Callable[[Tracker, Estimate, np.ndarray], None] | None = None
 
     # -- starting -----------------------------------------------------------------
     @property
@@ -164,13 +168,24 @@ class SessionEstimator:
         mean = self.tracker.mean
         if self.tracker.walkable is not None:
             mean = self.tracker.walkable.nearest_inside(mean)[0]
-        self.estimate = Estimate.of(t, mean, self.tracker.covariance, level, source, building)
+        own = self.tracker.covariance
+        reported = self.shared_error.reported(own) if self.shared_error.active else own
+        self.estimate = Estimate.of(t, mean, reported, level, source, building)
         n = selfcal.N_AUG  # (the smoother's state: an EKF's walk offset is not smoothed)
         self.full_state = (FullState.of(self.tracker.state_mean[:n], self.tracker.state_covariance[:n, :n], step)
                            if isinstance(self.tracker, selfcal.Calibrating) else None)
         if self.on_record is not None:
-            self.on_record(self.tracker, self.estimate)
+            self.on_record(self.tracker, self.estimate, own)
         return self.estimate
+
+    def _considered(self, share: float | None = None) -> selfcal.Calibrating | None:
+        """The tracker when this input moves ``shared_error``: a self-calibrating one that does not
+        carry the walk's offset itself, once a fix has shared its error (or this one does)."""
+        t = self.tracker
+        if (isinstance(t, selfcal.Calibrating) and not t.models_walk_offset
+                and (bool(share) or self.shared_error.active)):
+            return t
+        return None
 
     def search_area(self) -> Area | None:
         """Where the tracker allows the fingerprint model to look (None: anywhere). Not before
@@ -292,7 +307,11 @@ class SessionEstimator:
         self.advance(step.t)
         if self.tracker is None:
             return None
+        considered = self._considered()
+        before = None if considered is None else considered.state_mean
         self.tracker.predict(step)
+        if before is not None:
+            self.shared_error.step(before, step)
         return self._record(step.t, "step", step)
 
     def scan(self, scan: Scan, fix: Fix, site: SiteMap) -> ScanResult:
@@ -306,14 +325,20 @@ class SessionEstimator:
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
-            return ScanResult(self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
-                                         site.walkable.get((fix.building, fix.floor))))
+            self.shared_error = SharedFixError()
+            first = self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
+                               site.walkable.get((fix.building, fix.floor)))
+            if self._considered(fix.shared_share) is not None:  # (the start's error is this fix's: D stays 0)
+                self.shared_error.restart(fix_cov(cov), fix.shared_share)
+            return ScanResult(first)
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
             # A confirmed floor change (maybe into another building): its plan, restart from the fix there.
             self._use_plan(site)
             self.tracker.reset(fix.mean, fix_cov(fix.covariance))
+            if self._considered(fix.shared_share) is not None:
+                self.shared_error.restart(fix_cov(fix.covariance), fix.shared_share)
         elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)
@@ -348,7 +373,7 @@ class SessionEstimator:
         fix = Fix(snap.x, snap.y, floor, snap.covariance, building=building, shared_share=0.0)
         d2 = self._d2(fix, snap.covariance)
         if d2 <= GATE_D2:
-            self.tracker.update(fix)
+            self._take(fix, snap.covariance, snap.covariance)
             return None
         return self._outlier(f"landmark snap to {snap.beacon_id}", fix, d2)
 
@@ -381,10 +406,21 @@ class SessionEstimator:
             d2 = self._d2(fix, R)
         if d2 <= GATE_D2:
             self.gated_in_a_row = 0
-            self.tracker.update(replace(fix, covariance=R * student_t_factor(d2)) if learns else fix)
+            self._take(fix, R, R * student_t_factor(d2) if learns else R)
             return None
         self.gated_in_a_row += 1
         return self._outlier("fix", fix, d2)
+
+    def _take(self, fix: Fix, R: np.ndarray, R_used: np.ndarray) -> None:
+        """The tracker's update with an accepted fix of marginal covariance ``R``, taken with
+        ``R_used``; and what it does to ``shared_error``."""
+        assert self.tracker is not None
+        considered = self._considered(fix.shared_share)
+        prior = None if considered is None else considered.state_covariance
+        self.tracker.update(replace(fix, covariance=R_used))
+        if prior is not None:
+            n = selfcal.N_AUG
+            self.shared_error.fix(prior[:n, :n], fix_cov(R), fix_cov(R_used), fix.shared_share)
 
     def _outlier(self, what: str, fix: Fix, d2: float) -> str:
         """Why the gate refused ``fix`` (a fingerprint fix or a landmark snap)."""
@@ -412,6 +448,7 @@ class SessionEstimator:
             "estimate": None if self.estimate is None else self.estimate.to_dict(),
             "gated_in_a_row": self.gated_in_a_row,
             "fix_noise": self.fix_noise.to_list(),
+            "shared_error": self.shared_error.to_dict(),
         }
 
     @classmethod
@@ -426,6 +463,7 @@ class SessionEstimator:
         obj.estimate = None if d["estimate"] is None else Estimate.from_dict(d["estimate"])
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         obj.fix_noise = FixNoiseScale.from_list(d.get("fix_noise"))  # absent from older states
+        obj.shared_error = SharedFixError.from_dict(d.get("shared_error"))  # absent from older states
         return obj
 
 

@@ -223,6 +223,13 @@ class Tracker(ABC):
         self-calibrating filters take it as a heading reference where the walls give no grid."""
         self.survey_grid_deg = None if deg is None else float(deg)
 
+    @property
+    def models_walk_offset(self) -> bool:
+        """Whether the tracker itself carries the walk's shared fix error (an opt-in state: the
+        EKF's ``walk_offset``, the PF's ``fix_bias_share``); the session then adds no consider
+        covariance for it (``shared_error``)."""
+        return False
+
     def search_region(self) -> tuple[float, float, float, float] | None:
         """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its
         candidate reference points to, or None for no restriction."""

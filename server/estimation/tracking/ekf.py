@@ -269,6 +269,10 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         return FixInnovation(np.asarray(fix.mean, float) - offset_h(x), H @ P @ H.T, 1.0 - rho)
 
     @property
+    def models_walk_offset(self) -> bool:
+        return bool(self.params["walk_offset"])
+
+    @property
     def has_offset(self) -> bool:
         """Whether the state carries the walk's fix offset (after a fix with ``shared_share`` > 0)."""
         return len(self.ekf.x) == N_OFFSET

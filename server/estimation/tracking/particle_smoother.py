@@ -46,11 +46,13 @@ class Smoothed:
 @dataclass
 class _Pending:
     """An estimate waiting for its lag: its cloud's positions, for each current particle the row of
-    its ancestor there, the cloud's own covariance and the floor's walkable area."""
+    its ancestor there, the cloud's own covariance, what the fixes' shared error adds to it
+    (``shared_error``) and the floor's walkable area."""
 
     positions: np.ndarray
     ancestors: np.ndarray
     covariance: np.ndarray
+    excess: np.ndarray | None
     walkable: Walkable | None
 
 
@@ -75,10 +77,12 @@ class PathSmoother:
         self._weights: np.ndarray | None = None  # the last observed cloud's weights
         self._done: list[Smoothed] = []
 
-    def observe(self, tracker: ParticleFilterXYTracker, covariance: np.ndarray) -> None:
-        """The tracker has just made an estimate, of the cloud's ``covariance``: trace the pending
-        estimates' ancestors through its resamplings since the last one, add its cloud, and smooth
-        the estimate ``lag`` back."""
+    def observe(self, tracker: ParticleFilterXYTracker, covariance: np.ndarray,
+                excess: np.ndarray | None = None) -> None:
+        """The tracker has just made an estimate, of the cloud's ``covariance`` (and the session's
+        ``excess`` for the fixes' shared error, which later fixes share too, so it stays in the
+        smoothed covariance): trace the pending estimates' ancestors through its resamplings since
+        the last one, add its cloud, and smooth the estimate ``lag`` back."""
         rows = tracker.take_lineage()
         if self._pending:
             if rows.min() < 0 or rows.max() >= self._n:  # drawn anew: the paths end with the cloud before
@@ -88,7 +92,8 @@ class PathSmoother:
                     p.ancestors = p.ancestors[rows]
         positions = np.array(tracker.particles[:, :2], float)
         self._n = len(positions)
-        self._pending.append(_Pending(positions, np.arange(self._n), covariance, tracker.walkable))
+        self._pending.append(_Pending(positions, np.arange(self._n), covariance,
+                                      excess if excess is not None and excess.any() else None, tracker.walkable))
         self._weights = np.array(tracker.weights, float)
         if len(self._pending) > self.lag:
             self._emit(len(self._pending) - self.lag)
@@ -108,6 +113,8 @@ class PathSmoother:
             share = np.bincount(p.ancestors, weights=w, minlength=len(p.positions))
             h2 = float(share @ share) ** (1.0 / 3.0)  # (1/n_a)^(1/3)
             cov = no_wider(weighted_covariance(points, w) + h2 * p.covariance, p.covariance)
+            if p.excess is not None:
+                cov = cov + p.excess
             if p.walkable is not None:
                 mean = p.walkable.nearest_inside(mean)[0]
             self._done.append(Smoothed(np.asarray(mean, float), cov))

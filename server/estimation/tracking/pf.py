@@ -587,6 +587,10 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     def _fix_bias_on(self) -> bool:
         return self.dim >= 6 and self._has_plan()
 
+    @property
+    def models_walk_offset(self) -> bool:
+        return self._fix_bias_on()
+
     def predict(self, step: Step) -> None:
         n = len(self.particles)
         rng = self.rng

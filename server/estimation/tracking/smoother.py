@@ -114,6 +114,17 @@ def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: l
     return x_s, P_s
 
 
+def _shared_excess(estimate: Estimate, state: FullState) -> np.ndarray:
+    """What the session added to the tracker's position covariance for the fixes' shared error
+    (``shared_error``: the estimate's covariance less its whole state's position block, ≥ 0); the
+    smoothed estimate shares that error too (later fixes carry the same offset), so it keeps it."""
+    P = np.array(state.covariance, float)[:2, :2]
+    excess = np.array(estimate.covariance, float) - P
+    if np.max(np.abs(excess)) <= 1e-9 * np.trace(P):  # (no shared error: only round-off)
+        return np.zeros((2, 2))
+    return _psd(excess, 0.0)
+
+
 def _full_states(states: Sequence[FullState | None], first: list[int],
                  last: list[int]) -> tuple[list[FullState], list[FullState]] | None:
     """A segment's filtered (``last``) and predicted (``first``) whole states when it can be smoothed
@@ -162,7 +173,9 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
             x_s, P_s = _rts([np.array(f.mean) for f in filtered], [np.array(f.covariance) for f in filtered],
                             [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs,
                             selfcal.state_difference)
-            x_s, P_s = [x[:2] for x in x_s], [SMOOTHED_COV_SCALE * P[:2, :2] for P in P_s]
+            x_s = [x[:2] for x in x_s]
+            P_s = [SMOOTHED_COV_SCALE * P[:2, :2] + _shared_excess(track[i], f)
+                   for P, i, f in zip(P_s, last, filtered, strict=True)]
         else:
             fe, pe = [track[i] for i in last], [track[i] for i in first]
             x_s, P_s = _rts([np.array([e.x, e.y]) for e in fe], [np.array(e.covariance, float) for e in fe],

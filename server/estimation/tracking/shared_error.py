@@ -1,0 +1,111 @@
+"""What the fixes' shared error adds to a self-calibrating tracker's uncertainty (consider analysis).
+
+A fingerprint map's fixes along one walk share part of their error (the map's measured walk
+share ρ, ``Fix.shared_share``: on the MSFT walks 0.24–0.70 of a fix's whitened error is common to
+fixes ≥ 10 m apart). A filter that takes each fix's error as new averages the independent parts
+away and believes the shared part gone too: its covariance shrinks fix after fix while its error
+stays at the shared offset (position NEES 8–14 on simulated walks whose fixes share their error,
+5.7–10.9 for the PF on the MSFT walks).
+
+This module does not change the filter (its gains, its gate, its estimates stay exactly as they
+are: estimating or considering the offset in the gain lost on real walks, docs/tracking-design.md).
+It computes what that filter's error covariance actually is when each fix k is
+z = p + √ρₖ Lₖ u + v, with u ~ N(0, I₂) one whitened offset for the whole walk (LₖLₖᵀ = Rₖ, the
+fix's covariance as the session scales it) and v the fix's own noise — the *consider covariance*
+of the Schmidt–Kalman literature, propagated with the filter's own gains. With e the error of
+the tracker's state [x, y, b, s], the session keeps D = E[eeᵀ] − P (what the tracker's covariance
+P leaves out) and C = E[e uᵀ]:
+
+- a step e ← F e + w (F = ∂f/∂x at the state before it): D ← F D Fᵀ, C ← F C;
+- an accepted fix with gain K = P⁻Hᵀ(HP⁻Hᵀ + R_used)⁻¹ from the prior moments (H = [I₂ 0], the
+  gain of the Gaussian filters and the PF's cloud moments alike), A = I − KH:
+  C ← A C + √ρ K L, D ← A D Aᵀ + √ρ (A C Lᵀ Kᵀ + K L Cᵀ Aᵀ) (the shared part's own √ρL·√ρLᵀ
+  is already in the filter's R);
+- a measurement sharing nothing (a landmark snap): D ← A D Aᵀ, C ← A C;
+- a restart on a fix (cold start, floor change): the position's error is that fix's error, so
+  its rows of C are √ρ L and of D zero (the bias and scale keep theirs).
+
+The reported covariance is P + D on the position (D clipped at 0 there: the excess never makes
+the report narrower than the tracker's own). Beacon ranges, grid observations and walls are left
+out (each would only shrink D further): the report errs wide, never narrow. Fixes with ρ 0 or
+unknown leave D = C = 0, so maps without a walk share, and unbiased fixes, report P exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from server.estimation.tracking.selfcal import N_AUG, jacobians
+from server.estimation.types import Step
+
+
+def _zeros_d() -> np.ndarray:
+    return np.zeros((N_AUG, N_AUG))
+
+
+def _zeros_c() -> np.ndarray:
+    return np.zeros((N_AUG, 2))
+
+
+@dataclass
+class SharedFixError:
+    """The excess covariance ``D`` (4×4) and the cross-covariance ``C`` (4×2) with the walk's
+    whitened fix offset (module docstring); both zero until a fix that shares its error."""
+
+    D: np.ndarray = field(default_factory=_zeros_d)
+    C: np.ndarray = field(default_factory=_zeros_c)
+
+    @property
+    def active(self) -> bool:
+        """Whether anything is carried (all-zero D and C stay zero under every update)."""
+        return bool(self.C.any() or self.D.any())
+
+    def step(self, x_before: np.ndarray, step: Step) -> None:
+        """A PDR step from state ``x_before`` ([x, y, b, s])."""
+        F, _ = jacobians(np.asarray(x_before, float)[:N_AUG], step.length_m, math.radians(step.heading_deg))
+        self.D = F @ self.D @ F.T
+        self.C = F @ self.C
+
+    def fix(self, P_prior: np.ndarray, R: np.ndarray, R_used: np.ndarray, share: float | None) -> None:
+        """An accepted fix (or landmark snap) with marginal covariance ``R`` (the session's scaled
+        one), taken by the tracker with ``R_used`` (R times its Student-t factor), a share ``share``
+        of it common to the walk, on the tracker's prior state covariance ``P_prior`` (4×4)."""
+        P = np.asarray(P_prior, float)
+        K = P[:, :2] @ np.linalg.inv(P[:2, :2] + np.asarray(R_used, float))
+        A = np.eye(N_AUG)
+        A[:, :2] -= K
+        D = A @ self.D @ A.T
+        C = A @ self.C
+        rho = share or 0.0
+        if rho > 0.0:
+            KL = math.sqrt(rho) * K @ np.linalg.cholesky(np.asarray(R, float))
+            cross = C @ KL.T  # (A C)(√ρ K L)ᵀ: uses C before this fix's own share is added
+            D = D + cross + cross.T
+            C = C + KL
+        self.D, self.C = 0.5 * (D + D.T), C
+
+    def restart(self, R: np.ndarray, share: float | None) -> None:
+        """The position restarted on a fix with covariance ``R`` (as the tracker took it) and
+        shared ``share``: its error is that fix's, √ρ L u plus the fix's own noise."""
+        self.D[:2, :] = 0.0
+        self.D[:, :2] = 0.0
+        self.C[:2] = math.sqrt(share) * np.linalg.cholesky(np.asarray(R, float)) if share else 0.0
+
+    def reported(self, P_pos: np.ndarray) -> np.ndarray:
+        """The position covariance to report: the tracker's ``P_pos`` + D's position block (≥ 0)."""
+        w, v = np.linalg.eigh(self.D[:2, :2])
+        return np.asarray(P_pos, float) + (v * np.maximum(w, 0.0)) @ v.T
+
+    def to_dict(self) -> dict[str, list] | None:
+        """JSON form (None when nothing is carried)."""
+        return {"D": self.D.tolist(), "C": self.C.tolist()} if self.active else None
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> SharedFixError:
+        """Inverse of ``to_dict``; None (a state stored without it) gives zeros."""
+        if d is None:
+            return cls()
+        return cls(np.asarray(d["D"], float).reshape(N_AUG, N_AUG), np.asarray(d["C"], float).reshape(N_AUG, 2))
