@@ -357,7 +357,9 @@ class EstimateOut(BaseModel):
     y: float = Field(description=Y_DOC)
     floor: int
     building: int = Field(0, description=BUILDING_DOC)
-    covariance: list[list[float]] = Field(description=COV_DOC)
+    covariance: list[list[float]] = Field(description=COV_DOC + (
+        " For ekf/ukf/skpf/pf sessions it also counts the error a walk's fixes share (the model's "
+        "`metrics.calibration.walk_share`), which the tracker's own covariance leaves out."))
     source: Literal["step", "scan", "init"] = Field(
         description="What made it: a PDR step, a scan's fix, or the session's initial position.")
 
@@ -481,7 +483,8 @@ class CalibrationOut(BaseModel):
     floor_m: float
     walk_share: float | None = Field(None, ge=0, le=1, description=(
         "Share of the calibrated covariance that one device's fixes at least 10 m apart have in common "
-        "(measured where each device is held out once; null otherwise). An `ekf` session with "
+        "(measured where each device is held out once; null otherwise). Sessions of the self-calibrating "
+        "filters count it in their estimates' covariance. An `ekf` session with "
         "`filter_params` `walk_offset` 1 estimates the walk's fix offset from it, `walk_offset` 2 accounts for "
         "it without estimating it (for phones whose heading is calibrated)."))
 
