@@ -53,15 +53,13 @@ def _zeros_c() -> np.ndarray:
 @dataclass
 class SharedFixError:
     """The excess covariance ``D`` (4×4) and the cross-covariance ``C`` (4×2) with the walk's
-    whitened fix offset (module docstring); both zero until a fix that shares its error."""
+    whitened fix offset (module docstring); both zero until a fix that shares its error.
+    ``active``: whether a fix has shared its error since the start (before, D and C are zero
+    and stay zero under every update, so nothing need be computed)."""
 
     D: np.ndarray = field(default_factory=_zeros_d)
     C: np.ndarray = field(default_factory=_zeros_c)
-
-    @property
-    def active(self) -> bool:
-        """Whether anything is carried (all-zero D and C stay zero under every update)."""
-        return bool(self.C.any() or self.D.any())
+    active: bool = False
 
     def step(self, x_before: np.ndarray, step: Step) -> None:
         """A PDR step from state ``x_before`` ([x, y, b, s])."""
@@ -81,6 +79,7 @@ class SharedFixError:
         C = A @ self.C
         rho = share or 0.0
         if rho > 0.0:
+            self.active = True
             KL = math.sqrt(rho) * K @ np.linalg.cholesky(np.asarray(R, float))
             cross = C @ KL.T  # (A C)(√ρ K L)ᵀ: uses C before this fix's own share is added
             D = D + cross + cross.T
@@ -93,11 +92,23 @@ class SharedFixError:
         self.D[:2, :] = 0.0
         self.D[:, :2] = 0.0
         self.C[:2] = math.sqrt(share) * np.linalg.cholesky(np.asarray(R, float)) if share else 0.0
+        self.active = self.active or bool(share)
 
     def reported(self, P_pos: np.ndarray) -> np.ndarray:
-        """The position covariance to report: the tracker's ``P_pos`` + D's position block (≥ 0)."""
-        w, v = np.linalg.eigh(self.D[:2, :2])
-        return np.asarray(P_pos, float) + (v * np.maximum(w, 0.0)) @ v.T
+        """The position covariance to report: the tracker's ``P_pos`` + D's position block with
+        its negative eigenvalue (if any) set to 0 (closed form for 2 × 2: once per estimate)."""
+        (a, b), (_, c) = self.D[:2, :2].tolist()
+        m, r = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+        if m - r >= 0.0:  # both eigenvalues ≥ 0: D's block as it is
+            excess = ((a, b), (b, c))
+        elif m + r <= 0.0:  # neither: nothing
+            return np.asarray(P_pos, float)
+        else:  # the positive eigenvalue λ = m + r alone: λ·vvᵀ, v its unit eigenvector
+            lam = m + r
+            vx, vy = (b, lam - a) if abs(lam - a) >= abs(lam - c) else (lam - c, b)
+            k = lam / (vx * vx + vy * vy)
+            excess = ((k * vx * vx, k * vx * vy), (k * vx * vy, k * vy * vy))
+        return np.asarray(P_pos, float) + np.array(excess)
 
     def to_dict(self) -> dict[str, list] | None:
         """JSON form (None when nothing is carried)."""
@@ -108,4 +119,4 @@ class SharedFixError:
         """Inverse of ``to_dict``; None (a state stored without it) gives zeros."""
         if d is None:
             return cls()
-        return cls(np.asarray(d["D"], float).reshape(N_AUG, N_AUG), np.asarray(d["C"], float).reshape(N_AUG, 2))
+        return cls(np.asarray(d["D"], float).reshape(N_AUG, N_AUG), np.asarray(d["C"], float).reshape(N_AUG, 2), True)
