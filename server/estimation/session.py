@@ -178,12 +178,13 @@ class SessionEstimator:
             self.on_record(self.tracker, self.estimate, own)
         return self.estimate
 
-    def _considered(self, share: float | None = None) -> selfcal.Calibrating | None:
+    def _considered(self, share: float | None = None, narrowed: bool = False) -> selfcal.Calibrating | None:
         """The tracker when this input moves ``shared_error``: a self-calibrating one that does not
-        carry the walk's offset itself, once a fix has shared its error (or this one does)."""
+        carry the walk's offset itself, once a fix has shared its error or been taken narrower than
+        its measured covariance (or this one is)."""
         t = self.tracker
         if (isinstance(t, selfcal.Calibrating) and not t.models_walk_offset
-                and (bool(share) or self.shared_error.active)):
+                and (bool(share) or narrowed or self.shared_error.active)):
             return t
         return None
 
@@ -328,17 +329,19 @@ class SessionEstimator:
             self.shared_error = SharedFixError()
             first = self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
                                site.walkable.get((fix.building, fix.floor)))
-            if self._considered(fix.shared_share) is not None:  # (the start's error is this fix's: D stays 0)
-                self.shared_error.restart(fix_cov(cov), fix.shared_share)
+            if self._considered(fix.shared_share, narrowed=True) is not None:  # (the start's error is this fix's)
+                self.shared_error.restart(fix_cov(fix.covariance), fix.shared_share, R_start=fix_cov(cov))
             return ScanResult(first)
         refused = None
         floor_before = self.floors.floor
         if self.floors.observe(floor_key(fix.building, fix.floor)):
             # A confirmed floor change (maybe into another building): its plan, restart from the fix there.
             self._use_plan(site)
-            self.tracker.reset(fix.mean, fix_cov(fix.covariance))
-            if self._considered(fix.shared_share) is not None:
-                self.shared_error.restart(fix_cov(fix.covariance), fix.shared_share)
+            R_start = fix_cov(fix.covariance)
+            self.tracker.reset(fix.mean, R_start)
+            scale = self.fix_noise.scale
+            if self._considered(fix.shared_share, narrowed=scale > 1.0) is not None:
+                self.shared_error.restart(R_start * max(scale, 1.0), fix.shared_share, R_start=R_start)
         elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)
@@ -393,7 +396,8 @@ class SessionEstimator:
         assert self.tracker is not None
         R_own = fix_cov(fix.covariance)
         learns = self.tracker.augmented
-        R = R_own * self.fix_noise.scale if learns else R_own
+        scale = self.fix_noise.scale if learns else 1.0
+        R = R_own * scale
         fix = replace(fix, covariance=R)
         expected = self.tracker.fix_innovation(fix)
         d2 = expected.d2(R)
@@ -406,16 +410,18 @@ class SessionEstimator:
             d2 = self._d2(fix, R)
         if d2 <= GATE_D2:
             self.gated_in_a_row = 0
-            self._take(fix, R, R * student_t_factor(d2) if learns else R)
+            t = student_t_factor(d2) if learns else 1.0
+            self._take(fix, R_own * max(scale, 1.0), R * t, narrowed=scale * t < 1.0)
             return None
         self.gated_in_a_row += 1
         return self._outlier("fix", fix, d2)
 
-    def _take(self, fix: Fix, R: np.ndarray, R_used: np.ndarray) -> None:
-        """The tracker's update with an accepted fix of marginal covariance ``R``, taken with
-        ``R_used``; and what it does to ``shared_error``."""
+    def _take(self, fix: Fix, R: np.ndarray, R_used: np.ndarray, narrowed: bool = False) -> None:
+        """The tracker's update with an accepted fix of marginal covariance ``R`` (as the session
+        measures its fixes), taken with ``R_used`` (``narrowed``: narrower than ``R``); and what it
+        does to ``shared_error``."""
         assert self.tracker is not None
-        considered = self._considered(fix.shared_share)
+        considered = self._considered(fix.shared_share, narrowed)
         prior = None if considered is None else considered.state_covariance
         self.tracker.update(replace(fix, covariance=R_used))
         if prior is not None:

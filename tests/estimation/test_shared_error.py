@@ -21,9 +21,9 @@ AUGMENTED = ("ekf", "ukf", "skpf", "pf")
 
 
 def test_the_excess_is_the_filters_true_error_covariance_when_fixes_share_an_offset():
-    """A Kalman filter over [x, y, b, s] that takes each fix as independent, against the exact
-    joint propagation of its error and the walk's whitened offset u (6 × 6, linear): P + D is the
-    error's true covariance, and C its covariance with u."""
+    """A Kalman filter over [x, y, b, s] that takes each fix as independent (and some narrower than
+    they are), against the exact joint propagation of its error and the walk's whitened offset u
+    (6 × 6, linear): P + D is the error's true covariance, and C its covariance with u."""
     rng = np.random.default_rng(4)
     P = np.diag([1.0, 1.0, math.radians(5) ** 2, 0.05**2])
     x = np.array([0.0, 0.0, 0.02, 1.03])
@@ -45,7 +45,7 @@ def test_the_excess_is_the_filters_true_error_covariance_when_fixes_share_an_off
             a = rng.normal(0, 1, (2, 2))
             R = a @ a.T + np.eye(2) * rng.uniform(1, 9)
             rho = float(rng.uniform(0.2, 0.7))
-            t_factor = float(rng.uniform(1.0, 1.5))  # a Student-t weight: the gain takes a wider R
+            t_factor = float(rng.uniform(0.25, 1.5))  # a Student-t weight (> 1), a cold start's scale prior (< 1)
             K = P @ H.T @ np.linalg.inv(H @ P @ H.T + t_factor * R)
             shared.fix(P, R, t_factor * R, rho)
             A = np.eye(4) - K @ H
@@ -55,9 +55,9 @@ def test_the_excess_is_the_filters_true_error_covariance_when_fixes_share_an_off
             T[:4, :4], T[:4, 4:] = A, math.sqrt(rho) * K @ L
             joint = T @ joint @ T.T
             joint[:4, :4] += K @ ((1 - rho) * R) @ K.T  # the fix's own noise, the rest of R
-            # the filter's belief also counts the excess t-weight on the shared part: that much of
-            # K·t·R·Kᵀ is not error, and the consider covariance (which leaves it in P) errs wide by it
-            joint[:4, :4] += K @ ((t_factor - 1) * R) @ K.T
+            # a wider R_used (t > 1): that much of the filter's K·t·R·Kᵀ is not error, and the consider
+            # covariance, which leaves it in P, errs wide by it; a narrower one (t < 1) it counts exactly
+            joint[:4, :4] += K @ (max(t_factor - 1, 0.0) * R) @ K.T
     np.testing.assert_allclose(P + shared.D, joint[:4, :4], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(shared.C, joint[:4, 4:], rtol=1e-9, atol=1e-12)
     assert np.linalg.eigvalsh(shared.D[:2, :2]).min() > 0.1  # a real excess, not round-off
@@ -173,13 +173,32 @@ def test_a_tracker_that_carries_the_walks_offset_itself_gets_no_excess():
 
 def test_a_cold_start_begins_with_the_first_fixs_shared_error():
     steps, scans, _, at_scan = _walk(4, n=30)
-    est = SessionEstimator("ekf", seed=3)
-    est.apply_batch(steps, scans, WalkFixes(at_scan, 3.0, 0.5, 0.5, 4), SiteMap())
-    assert est.shared_error.active
+    shared = SessionEstimator("ekf", seed=3)
+    shared.apply_batch(steps[:2], scans[:1], WalkFixes(at_scan, 3.0, 0.5, 0.5, 4), SiteMap())
     blind = SessionEstimator("ekf", seed=3)
-    blind.apply_batch(steps, scans, WalkFixes(at_scan, 3.0, 0.5, None, 4), SiteMap())
-    assert not blind.shared_error.active
-    assert np.trace(est.estimate.covariance) > 1.5 * np.trace(blind.estimate.covariance)
+    blind.apply_batch(steps[:2], scans[:1], WalkFixes(at_scan, 3.0, 0.5, None, 4), SiteMap())
+    # the first fix started both: its error is the walk's offset's, √ρ L u, for the one that declares it
+    np.testing.assert_allclose(shared.shared_error.C[:2], math.sqrt(0.5) * 3.0 * np.eye(2))
+    assert not blind.shared_error.C.any()
+
+
+def test_a_cold_starts_fixes_taken_narrower_than_measured_are_counted():
+    """A cold start follows its first fixes faster by taking them with a scale prior of 0.25
+    (``COLD_FIX_SCALE_PRIOR``); its tracker then claims too much early on. The excess counts what
+    that leaves out: over the first estimates of forty cold-started walks with honest, independent
+    fixes the tracker's own NEES is well above 2, the reported one near it."""
+    reported, own = [], []
+    for seed in range(40):
+        steps, scans, at_step, at_scan = _walk(seed)
+        truth = {**at_step, **at_scan}
+        out = SessionEstimator("ekf", seed=3).apply_batch(steps, scans, WalkFixes(at_scan, 3.0, 0.0, None, seed),
+                                                          SiteMap())
+        for e, s in list(zip(out.estimates, out.states, strict=True))[:10]:
+            d = np.array([e.x, e.y]) - truth[e.t]
+            reported.append(float(d @ np.linalg.solve(np.array(e.covariance), d)))
+            own.append(float(d @ np.linalg.solve(np.array(s.covariance)[:2, :2], d)))
+    assert np.mean(own) > 3.5
+    assert 1.0 < np.mean(reported) < 3.0
 
 
 def test_the_smoothed_track_keeps_the_excess_of_each_estimate():

@@ -42,6 +42,21 @@ from server.estimation.tracking.selfcal import N_AUG, jacobians
 from server.estimation.types import Step
 
 
+def positive_part(M: np.ndarray) -> np.ndarray | None:
+    """A symmetric 2 × 2 matrix with its negative eigenvalue (if any) set to 0, in closed form
+    (once per estimate); None when nothing positive is left."""
+    (a, b), (_, c) = M.tolist()
+    m, r = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
+    if m + r <= 0.0:
+        return None
+    if m - r >= 0.0:  # both eigenvalues ≥ 0: as it is
+        return np.array(((a, b), (b, c)))
+    lam = m + r  # the positive eigenvalue alone: λ·vvᵀ, v its unit eigenvector
+    vx, vy = (b, lam - a) if abs(lam - a) >= abs(lam - c) else (lam - c, b)
+    k = lam / (vx * vx + vy * vy)
+    return np.array(((k * vx * vx, k * vx * vy), (k * vx * vy, k * vy * vy)))
+
+
 def _zeros_d() -> np.ndarray:
     return np.zeros((N_AUG, N_AUG))
 
@@ -68,15 +83,22 @@ class SharedFixError:
         self.C = F @ self.C
 
     def fix(self, P_prior: np.ndarray, R: np.ndarray, R_used: np.ndarray, share: float | None) -> None:
-        """An accepted fix (or landmark snap) with marginal covariance ``R`` (the session's scaled
-        one), taken by the tracker with ``R_used`` (R times its Student-t factor), a share ``share``
-        of it common to the walk, on the tracker's prior state covariance ``P_prior`` (4×4)."""
+        """An accepted fix (or landmark snap) with marginal covariance ``R`` (as the session
+        measures its fixes), taken by the tracker with ``R_used``, a share ``share`` of it common
+        to the walk, on the tracker's prior state covariance ``P_prior`` (4×4). Where ``R_used`` is
+        narrower than ``R`` (a cold start's scale prior below 1 makes it follow its fixes faster),
+        the gain's K (R − R_used)Kᵀ that the tracker's covariance leaves out is added; where it is
+        wider (a Student-t weight), nothing is taken away (the report errs wide)."""
         P = np.asarray(P_prior, float)
         K = P[:, :2] @ np.linalg.inv(P[:2, :2] + np.asarray(R_used, float))
         A = np.eye(N_AUG)
         A[:, :2] -= K
         D = A @ self.D @ A.T
         C = A @ self.C
+        narrowed = positive_part(np.asarray(R, float) - np.asarray(R_used, float))
+        if narrowed is not None:
+            self.active = True
+            D = D + K @ narrowed @ K.T
         rho = share or 0.0
         if rho > 0.0:
             self.active = True
@@ -86,29 +108,24 @@ class SharedFixError:
             C = C + KL
         self.D, self.C = 0.5 * (D + D.T), C
 
-    def restart(self, R: np.ndarray, share: float | None) -> None:
-        """The position restarted on a fix with covariance ``R`` (as the tracker took it) and
-        shared ``share``: its error is that fix's, √ρ L u plus the fix's own noise."""
+    def restart(self, R: np.ndarray, share: float | None, R_start: np.ndarray | None = None) -> None:
+        """The position restarted on a fix with marginal covariance ``R`` and shared ``share``:
+        its error is that fix's, √ρ L u plus the fix's own noise; started with ``R_start`` (a cold
+        start caps it), the position's D is what that leaves out of ``R``."""
         self.D[:2, :] = 0.0
         self.D[:, :2] = 0.0
-        self.C[:2] = math.sqrt(share) * np.linalg.cholesky(np.asarray(R, float)) if share else 0.0
-        self.active = self.active or bool(share)
+        R = np.asarray(R, float)
+        self.C[:2] = math.sqrt(share) * np.linalg.cholesky(R) if share else 0.0
+        narrowed = None if R_start is None else positive_part(R - np.asarray(R_start, float))
+        if narrowed is not None:
+            self.D[:2, :2] = narrowed
+        self.active = self.active or bool(share) or narrowed is not None
 
     def reported(self, P_pos: np.ndarray) -> np.ndarray:
         """The position covariance to report: the tracker's ``P_pos`` + D's position block with
-        its negative eigenvalue (if any) set to 0 (closed form for 2 × 2: once per estimate)."""
-        (a, b), (_, c) = self.D[:2, :2].tolist()
-        m, r = 0.5 * (a + c), math.hypot(0.5 * (a - c), b)
-        if m - r >= 0.0:  # both eigenvalues ≥ 0: D's block as it is
-            excess = ((a, b), (b, c))
-        elif m + r <= 0.0:  # neither: nothing
-            return np.asarray(P_pos, float)
-        else:  # the positive eigenvalue λ = m + r alone: λ·vvᵀ, v its unit eigenvector
-            lam = m + r
-            vx, vy = (b, lam - a) if abs(lam - a) >= abs(lam - c) else (lam - c, b)
-            k = lam / (vx * vx + vy * vy)
-            excess = ((k * vx * vx, k * vx * vy), (k * vx * vy, k * vy * vy))
-        return np.asarray(P_pos, float) + np.array(excess)
+        its negative eigenvalue (if any) set to 0."""
+        excess = positive_part(self.D[:2, :2])
+        return np.asarray(P_pos, float) if excess is None else np.asarray(P_pos, float) + excess
 
     def to_dict(self) -> dict[str, list] | None:
         """JSON form (None when nothing is carried)."""
