@@ -132,7 +132,8 @@ class SessionEstimator:
         self.gated_in_a_row = 0
         #: how much this session's fixes scatter against their own covariance (fixnoise.py)
         self.fix_noise = FixNoiseScale()
-        #: what the walk's fixes' shared error adds to the tracker's covariance (shared_error.py)
+        #: what the tracker's covariance leaves out: the walk's fixes' shared error, a cold start's
+        #: narrowed inputs (shared_error.py); added to every estimate's covariance
         self.shared_error = SharedFixError()
         #: the site's walls the tracker was last given (not stored: they come from the site)
         self._plan_walls: list | None = None

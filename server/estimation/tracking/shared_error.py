@@ -1,4 +1,4 @@
-"""What the fixes' shared error adds to a self-calibrating tracker's uncertainty (consider analysis).
+"""What a self-calibrating tracker's covariance leaves out: the fixes' shared error, a cold start's narrowed inputs.
 
 A fingerprint map's fixes along one walk share part of their error (the map's measured walk
 share ρ, ``Fix.shared_share``: on the MSFT walks 0.24–0.70 of a fix's whitened error is common to
@@ -23,12 +23,21 @@ P leaves out) and C = E[e uᵀ]:
   is already in the filter's R);
 - a measurement sharing nothing (a landmark snap): D ← A D Aᵀ, C ← A C;
 - a restart on a fix (cold start, floor change): the position's error is that fix's error, so
-  its rows of C are √ρ L and of D zero (the bias and scale keep theirs).
+  its rows of C are √ρ L and of D what the start's covariance leaves out of the fix's (the bias
+  and scale keep theirs).
+
+The same excess counts what a tracker's deliberately narrowed inputs leave out: a cold start caps
+its first fix's covariance (``COLD_START_MAX_STD_M``) and takes its fixes with a scale prior below 1
+(``COLD_FIX_SCALE_PRIOR``) to follow them faster, so its covariance claims what the fixes do not
+give (NEES 7.4–8.2 on MSFT folds 0–1 without an initial position). An update with R_used narrower
+than the fixes' measured R (R_own × max(the session's scale, 1)) adds K (R − R_used) Kᵀ, and a start
+narrower than its fix adds the difference to D: exact for a linear filter, like the rest.
 
 The reported covariance is P + D on the position (D clipped at 0 there: the excess never makes
 the report narrower than the tracker's own). Beacon ranges, grid observations and walls are left
-out (each would only shrink D further): the report errs wide, never narrow. Fixes with ρ 0 or
-unknown leave D = C = 0, so maps without a walk share, and unbiased fixes, report P exactly.
+out (each would only shrink D further), as is a Student-t weight's widening of R: the report errs
+wide, never narrow. Known-start sessions whose fixes carry no share leave D = C = 0 and report P
+exactly.
 """
 
 from __future__ import annotations
@@ -68,9 +77,9 @@ def _zeros_c() -> np.ndarray:
 @dataclass
 class SharedFixError:
     """The excess covariance ``D`` (4×4) and the cross-covariance ``C`` (4×2) with the walk's
-    whitened fix offset (module docstring); both zero until a fix that shares its error.
-    ``active``: whether a fix has shared its error since the start (before, D and C are zero
-    and stay zero under every update, so nothing need be computed)."""
+    whitened fix offset (module docstring); both zero until a fix that shares its error or is
+    taken narrower than measured. ``active``: whether one has been (before, D and C are zero and
+    stay zero under every update, so nothing need be computed)."""
 
     D: np.ndarray = field(default_factory=_zeros_d)
     C: np.ndarray = field(default_factory=_zeros_c)
