@@ -359,7 +359,8 @@ class EstimateOut(BaseModel):
     building: int = Field(0, description=BUILDING_DOC)
     covariance: list[list[float]] = Field(description=COV_DOC + (
         " For ekf/ukf/skpf/pf sessions it also counts the error a walk's fixes share (the model's "
-        "`metrics.calibration.walk_share`), which the tracker's own covariance leaves out."))
+        "`metrics.calibration.walk_share`) and a cold start's narrowed inputs, which the tracker's own "
+        "covariance leaves out."))
     source: Literal["step", "scan", "init"] = Field(
         description="What made it: a PDR step, a scan's fix, or the session's initial position.")
 
