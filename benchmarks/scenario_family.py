@@ -340,6 +340,8 @@ PARAMS: dict[str, dict] = {}
 CORRIDOR_M: list[float | None] = [None]
 #: the PF's particle smoother's lag (``--lag``)
 LAG = [DEFAULT_LAG]
+#: sessions open without an initial position (``--cold``): the first scan's fix starts them
+COLD = [False]
 
 
 @dataclass
@@ -360,7 +362,8 @@ class Replay:
 def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Replay:
     """A batch every ``batch_s`` s, the session stored and loaded between batches (as the server does)."""
     est = SessionEstimator(name, seed=7, tracker_params=PARAMS.get(name))
-    est.start(w.truth[0], None, 0, [], None, "init")
+    if not COLD[0]:
+        est.start(w.truth[0], None, 0, [], None, "init")
     out = Replay(est, opening=json.loads(json.dumps(est.to_dict())))
     steps, scans = list(w.steps), list(w.scans)
     t_end = batch_s
@@ -402,11 +405,12 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
     smoothed, smoothed_nees = errors_and_nees(smooth_track(r.track, site.walkable, r.states), truth_by_t)
     particles: dict = {}
     if replays(name):  # the PF's particle smoother as the server serves it (``smoother=particles``), by replay
-        init = Estimate.from_dict(r.opening["estimate"])
-        by_replay = smoothed_by_replay(r.opening, r.batches, site, [init, *r.track], LAG[0])
+        start = [] if r.opening["estimate"] is None else [Estimate.from_dict(r.opening["estimate"])]
+        by_replay = smoothed_by_replay(r.opening, r.batches, site, [*start, *r.track], LAG[0])
         if by_replay is None:
             raise RuntimeError(f"{name}: the replay did not reproduce the track")
-        particles = dict(zip(("particles", "particles_nees"), errors_and_nees(by_replay[1:], truth_by_t), strict=True))
+        particles = dict(zip(("particles", "particles_nees"), errors_and_nees(by_replay[len(start):], truth_by_t),
+                             strict=True))
     return {"errors": errors, "smoothed": smoothed, "smoothed_nees": smoothed_nees, "nees": nees, "nis": nis,
             **particles,
             "refused": sum(not ok for _, ok in r.innovations), "fixes": len(r.innovations),
@@ -509,9 +513,13 @@ def main() -> int:
                     help="only the scenarios among --first/--n whose walk triggers a landmark snap")
     ap.add_argument("--lag", type=int, default=DEFAULT_LAG,
                     help="the PF's particle smoother's lag (estimates; the server's default)")
+    ap.add_argument("--cold", action="store_true",
+                    help="sessions open without an initial position: the first scan's fix starts them (cold start; "
+                         "PDR alone still starts at the truth)")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
     LAG[0] = a.lag
+    COLD[0] = a.cold
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
     MODEL_PARAMS.update(a.model_params)
@@ -536,7 +544,8 @@ def main() -> int:
         title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}"
                  f"{f' ({len(scenarios)} with a landmark snap)' if a.with_snap else ''}, {what} fixes"
                  f"{f', the compass {a.compass_off:g}° off at the start' if a.compass_off is not None else ''}"
-                 f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''} "
+                 f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''}"
+                 f"{', cold start' if a.cold else ''} "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
         print()
