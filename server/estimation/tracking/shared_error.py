@@ -11,7 +11,8 @@ This module does not change the filter (its gains, its gate, its estimates stay 
 are: estimating or considering the offset in the gain lost on real walks, docs/tracking-design.md).
 It computes what that filter's error covariance actually is when each fix k is
 z = p + √ρₖ Lₖ u + v, with u ~ N(0, I₂) one whitened offset for the whole walk (LₖLₖᵀ = Rₖ, the
-fix's covariance as the session scales it) and v the fix's own noise — the *consider covariance*
+fix's covariance as the session measures it: the model's times max(the session's scale, 1)) and v
+the fix's own noise — the *consider covariance*
 of the Schmidt–Kalman literature, propagated with the filter's own gains. With e the error of
 the tracker's state [x, y, b, s], the session keeps D = E[eeᵀ] − P (what the tracker's covariance
 P leaves out) and C = E[e uᵀ]:
