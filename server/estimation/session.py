@@ -327,7 +327,6 @@ class SessionEstimator:
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
-            self.shared_error = SharedFixError()
             first = self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
                                site.walkable.get((fix.building, fix.floor)))
             if self._considered(fix.shared_share, narrowed=True) is not None:  # (the start's error is this fix's)

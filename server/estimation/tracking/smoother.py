@@ -51,6 +51,7 @@ import numpy as np
 
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import symmetric
+from server.estimation.tracking.shared_error import positive_part
 from server.estimation.types import Estimate, FullState
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
@@ -125,7 +126,8 @@ def _shared_excess(estimate: Estimate, state: FullState) -> np.ndarray:
     excess = np.array(estimate.covariance, float) - P
     if np.max(np.abs(excess)) <= 1e-9 * np.trace(P):  # (no shared error: only round-off)
         return np.zeros((2, 2))
-    return _psd(excess, 0.0)
+    positive = positive_part(excess)
+    return np.zeros((2, 2)) if positive is None else positive
 
 
 def _full_states(states: Sequence[FullState | None], first: list[int],
