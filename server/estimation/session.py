@@ -173,8 +173,10 @@ class SessionEstimator:
         reported = self.shared_error.reported(own) if self.shared_error.active else own
         self.estimate = Estimate.of(t, mean, reported, level, source, building)
         n = selfcal.N_AUG  # (the smoother's state: an EKF's walk offset is not smoothed)
-        self.full_state = (FullState.of(self.tracker.state_mean[:n], self.tracker.state_covariance[:n, :n], step)
-                           if isinstance(self.tracker, selfcal.Calibrating) else None)
+        tr = self.tracker
+        self.full_state = (FullState.of(tr.state_mean[:n], tr.state_covariance[:n, :n], step,
+                                        None if step is None else tr.step_joint)
+                           if isinstance(tr, selfcal.Calibrating) else None)
         if self.on_record is not None:
             self.on_record(self.tracker, self.estimate, own)
         return self.estimate

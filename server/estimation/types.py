@@ -120,43 +120,97 @@ class Estimate:
 
 
 @dataclass(frozen=True)
+class StepJoint:
+    """A particle filter's step as its cloud saw it: the joint moments of each particle's state
+    before the step (its ancestor's [x, y, b, s]) and after it, under the weights after it (walls
+    that killed particles and the grid's reweighing weigh the ancestors too). The smoother's gain
+    for the step is then the cloud's own regression of the old state on the new (an ensemble RTS),
+    not a linearised model's that knows nothing of the walls."""
+
+    #: the ancestors' mean and covariance under the weights after the step
+    origin_mean: tuple[float, ...]
+    origin_covariance: tuple[tuple[float, ...], ...]
+    #: E[(old − origin_mean)(new − new mean)ᵀ]
+    cross: tuple[tuple[float, ...], ...]
+
+    @classmethod
+    def of(cls, old: np.ndarray, new: np.ndarray, weights: np.ndarray) -> StepJoint:
+        """From rows of ancestors' states ``old`` and the particles' ``new`` ones, paired, and the
+        weights; to 7 significant digits (a smoother needs no more, and the track's rows stay short)."""
+        w = np.asarray(weights, float) / np.sum(weights)
+        a, b = old - w @ old, new - w @ new
+        cov = (a * w[:, None]).T @ a
+        return cls(_short(w @ old), tuple(map(_short, 0.5 * (cov + cov.T))), tuple(map(_short, (a * w[:, None]).T @ b)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored form: the origin covariance's upper triangle and the cross-covariance row by row."""
+        return {"m": list(self.origin_mean), "P": _upper(self.origin_covariance),
+                "X": [v for row in self.cross for v in row]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> StepJoint:
+        n = len(d["m"])
+        X = np.array(d["X"], float).reshape(n, n)
+        return cls(tuple(float(v) for v in d["m"]), _matrix(_from_upper(d["P"], n)), _matrix(X))
+
+
+def _short(values: np.ndarray) -> tuple[float, ...]:
+    """Values to 7 significant digits."""
+    return tuple(float(f"{v:.7g}") for v in values)
+
+
+def _matrix(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(a, float))
+
+
+def _upper(m: tuple[tuple[float, ...], ...]) -> list[float]:
+    """A symmetric matrix's upper triangle, row by row."""
+    return [m[i][j] for i in range(len(m)) for j in range(i, len(m))]
+
+
+def _from_upper(values, n: int) -> np.ndarray:
+    upper = iter(values)
+    P = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            P[i, j] = P[j, i] = float(next(upper))
+    return P
+
+
+@dataclass(frozen=True)
 class FullState:
     """A self-calibrating tracker's whole state at one track estimate, kept for the smoother:
     the mean [x, y, b, s], its 4 × 4 covariance, and for a step estimate the step (length m,
     heading °) that predicted it (``tracking.smoother``: an RTS over the whole state bends the
-    path before a heading bias was learned as that bias, not as independent noise per step)."""
+    path before a heading bias was learned as that bias, not as independent noise per step) and,
+    from a particle filter, the step's joint moments (``StepJoint``)."""
 
     mean: tuple[float, ...]
     covariance: tuple[tuple[float, ...], ...]
     step: tuple[float, float] | None = None
+    joint: StepJoint | None = None
 
     @classmethod
-    def of(cls, mean, cov, step: Step | None = None) -> FullState:
+    def of(cls, mean, cov, step: Step | None = None, joint: StepJoint | None = None) -> FullState:
         """Symmetric (a sample covariance may not be to the last bit): stored as its upper triangle."""
         c = np.asarray(cov, float)
-        c = 0.5 * (c + c.T)
-        return cls(tuple(np.asarray(mean, float).tolist()), tuple(map(tuple, c.tolist())),
-                   None if step is None else (float(step.length_m), float(step.heading_deg)))
+        return cls(tuple(np.asarray(mean, float).tolist()), _matrix(0.5 * (c + c.T)),
+                   None if step is None else (float(step.length_m), float(step.heading_deg)), joint)
 
     def to_dict(self) -> dict[str, Any]:
         """The stored form: the covariance's upper triangle, row by row."""
-        n = len(self.mean)
-        out: dict[str, Any] = {"m": list(self.mean), "P": [self.covariance[i][j] for i in range(n) for j in range(i, n)]}
+        out: dict[str, Any] = {"m": list(self.mean), "P": _upper(self.covariance)}
         if self.step is not None:
             out["u"] = list(self.step)
+        if self.joint is not None:
+            out["j"] = self.joint.to_dict()
         return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> FullState:
-        n = len(d["m"])
-        upper = iter(d["P"])
-        P = np.zeros((n, n))
-        for i in range(n):
-            for j in range(i, n):
-                P[i, j] = P[j, i] = float(next(upper))
-        u = d.get("u")
-        return cls(tuple(float(v) for v in d["m"]), tuple(tuple(float(v) for v in row) for row in P),
-                   None if u is None else (float(u[0]), float(u[1])))
+        u, j = d.get("u"), d.get("j")
+        return cls(tuple(float(v) for v in d["m"]), _matrix(_from_upper(d["P"], len(d["m"]))),
+                   None if u is None else (float(u[0]), float(u[1])), None if j is None else StepJoint.from_dict(j))
 
 
 @dataclass(frozen=True)

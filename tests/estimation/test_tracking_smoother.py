@@ -12,8 +12,8 @@ from filterpy.kalman import KalmanFilter
 
 from server.estimation.tracking import make_tracker
 from server.estimation.tracking.motion import step_noise_cov
-from server.estimation.tracking.smoother import SMOOTHED_COV_SCALE, smooth_track
-from server.estimation.types import Estimate, Fix, FullState, Step, step_displacement
+from server.estimation.tracking.smoother import ENSEMBLE_COV_SCALE, SMOOTHED_COV_SCALE, smooth_track
+from server.estimation.types import Estimate, Fix, FullState, Step, StepJoint, step_displacement
 from tests.helpers.simulate import simulate_walk
 
 
@@ -181,6 +181,61 @@ def test_the_full_state_smoother_equals_filterpy_rts_over_the_whole_state():
     assert max(abs(a.x - b.x) + abs(a.y - b.y) for a, b in zip(marginal, smoothed, strict=True)) > 1e-3
 
 
+def test_a_step_as_a_cloud_saw_it_smooths_as_the_model_when_the_cloud_is_the_model():
+    """The ensemble RTS (``StepJoint``: ancestors' moments and the cross-covariance) with the joint
+    moments a linear-Gaussian step has (old state x, P; cross P Fᵀ; predicted F P Fᵀ + Q) is the
+    RTS: equal to filterpy's over the whole state; a joint from elsewhere gives another answer, and
+    a run with a step that lacks its joint is smoothed by the model there and served at its scale."""
+    track, states, xf, Pf, Fs, Qs = _full_state_track()
+    joined = [s if s.step is None else replace(s, joint=StepJoint(
+        tuple(xf[k - 1]), tuple(map(tuple, Pf[k - 1])), tuple(map(tuple, Pf[k - 1] @ Fs[k].T))))
+        for s, k in zip(states, [0] + [k for k in range(1, len(xf)) for _ in (0, 1)], strict=True)]
+    xs_ref, Ps_ref, _, _ = KalmanFilter(dim_x=4, dim_z=2).rts_smoother(xf, Pf, Fs=Fs, Qs=Qs)
+    smoothed = smooth_track(track, None, joined)
+    for k in range(len(xf)):
+        i = 0 if k == 0 else 2 * k
+        np.testing.assert_allclose([smoothed[i].x, smoothed[i].y], xs_ref[k][:2], atol=1e-8)
+        # (served at the cloud's own scale: a track whose every step carries its joint is a PF's)
+        np.testing.assert_allclose(np.array(smoothed[i].covariance), ENSEMBLE_COV_SCALE * Ps_ref[k][:2, :2], atol=1e-8)
+    assert all(FullState.from_dict(json.loads(json.dumps(s.to_dict()))) == s for s in joined)
+    other = [s if s.joint is None else replace(s, joint=replace(s.joint, cross=tuple(
+        map(tuple, 0.5 * np.array(s.joint.cross))))) for s in joined]
+    assert max(abs(a.x - b.x) for a, b in zip(smooth_track(track, None, other), smoothed, strict=True)) > 1e-3
+    mixed = list(joined)
+    mixed[3] = replace(mixed[3], joint=None)  # (the step of index 2)
+    for a, b in zip(smooth_track(track, None, mixed), smooth_track(track, None, states), strict=True):
+        np.testing.assert_allclose([a.x, a.y, *np.ravel(a.covariance)], [b.x, b.y, *np.ravel(b.covariance)], atol=1e-8)
+
+
+def test_a_particle_filter_keeps_its_steps_joint_moments_through_kills_and_a_replays_descent():
+    """Without walls a PF's step pairs every particle with itself: the ancestors' moments are the
+    cloud's before the step (to the 7 digits it keeps), and the cross-covariance is the model's P Fᵀ (sampling
+    error aside); with a wall that kills the particles that start west of it, the survivors' ancestors sit east and
+    narrower; a replay's descent record goes on through the step as the joint saw it."""
+    from server.estimation.tracking import selfcal
+
+    t = make_tracker("pf", [0.0, 0.0], np.eye(2), seed=3, n_particles=20000)
+    before_m, before_P = t.state_mean, t.state_covariance
+    step = Step(1.0, 0.7, 90.0, length_std_m=0.05, heading_std_deg=5.0)
+    t.predict(step)
+    j = t.step_joint
+    np.testing.assert_allclose(j.origin_mean, before_m, rtol=1e-6, atol=1e-12)  # (stored to 7 digits)
+    np.testing.assert_allclose(np.array(j.origin_covariance), before_P, rtol=1e-6, atol=1e-12)
+    F, _ = selfcal.jacobians(before_m, step.length_m, np.radians(step.heading_deg))
+    model = before_P @ F.T
+    np.testing.assert_allclose(np.array(j.cross), model, atol=0.05 * np.abs(model).max())
+
+    walled = make_tracker("pf", [0.0, 0.0], np.eye(2), walls=[[0.0, -10.0, 0.0, 10.0]], seed=3, n_particles=4000)
+    start_m, start_P = walled.state_mean, walled.state_covariance
+    walled.lineage = np.arange(4000)  # as a replay's particle smoother keeps it
+    before = walled.particles[:, :4].copy()
+    walled.predict(Step(1.0, 3.0, 90.0))  # 3 m east: those that start west of the wall within 3 m die
+    j = walled.step_joint
+    assert j.origin_mean[0] > start_m[0] + 0.5 and j.origin_covariance[0][0] < 0.6 * start_P[0, 0]
+    assert walled.lineage is not None and walled.lineage.min() >= 0
+    assert j == StepJoint.of(before[walled.lineage], walled.particles[:, :4], walled.weights)
+
+
 def test_a_heading_bias_stored_on_either_side_of_the_wrap_smooths_as_the_same_angle():
     """The trackers keep b in (−π, π]: a walk whose bias drifts past ±180° stores b jumping by 2π
     between estimates. The smoother must see the same angle (it once read the jump as a 360° error
@@ -223,6 +278,7 @@ def test_the_session_records_the_whole_state_of_a_self_calibrating_tracker_only(
             assert (e.x, e.y) == pytest.approx(s.mean[:2]) and np.array(e.covariance) == pytest.approx(
                 np.array(s.covariance)[:2, :2])
             assert type(s).from_dict(json.loads(json.dumps(s.to_dict()))) == s  # stored and read back exactly
+            assert (s.joint is not None) == (name == "pf")  # a cloud's own step moments: the PF's only
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -88,7 +88,7 @@ from server.estimation.tracking.packed import (
 )
 from server.estimation.tracking.resampling import effective_sample_size, kld_count, systematic_resample
 from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
-from server.estimation.types import Fix, Step
+from server.estimation.types import Fix, Step, StepJoint
 
 #: KLD-sampling (``min_particles`` < ``n_particles``) is off by default. Chosen on the tune
 #: scenarios of benchmarks/scenario_family.py (ε = 0.15, bins 1 m, at least 100: 6–8 kB per
@@ -592,6 +592,16 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         return self._fix_bias_on()
 
     def predict(self, step: Step) -> None:
+        """The step (``_step``); its joint moments kept as ``step_joint`` for the smoother: each
+        particle's state paired with its ancestor's, followed through kills, resamplings and redraws
+        by the descent record the particle smoother reads (kept as it was for a replay)."""
+        before, kept = self.particles[:, : selfcal.N_AUG].copy(), self.lineage
+        self.lineage = np.arange(len(before))
+        self._step(step)
+        rows, self.lineage = self.lineage, None if kept is None else kept[self.lineage]
+        self.step_joint = StepJoint.of(before[rows], self.particles[:, : selfcal.N_AUG], self.weights)
+
+    def _step(self, step: Step) -> None:
         n = len(self.particles)
         rng = self.rng
         P = self.particles

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from server.estimation.building_grid import grid_direction_deg
-from server.estimation.types import Step
+from server.estimation.types import Step, StepJoint
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
 BIAS0_STD_DEG = 10.0
@@ -224,6 +224,9 @@ class Calibrating:
     walls: np.ndarray
     survey_grid_deg: float | None
     _run = StraightRun()
+    #: a particle filter's last step as its cloud saw it (``StepJoint``; None for the Gaussian filters,
+    #: whose smoother gain is their model's); not stored: it goes with the step's estimate
+    step_joint: StepJoint | None = None
     #: the grid direction of the walls it was computed for (``grid_direction_deg`` reads every wall)
     _grid_walls: np.ndarray | None = None
     _grid_deg: float | None = None

@@ -52,7 +52,7 @@ import numpy as np
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import symmetric
 from server.estimation.tracking.shared_error import positive_part
-from server.estimation.types import Estimate, FullState
+from server.estimation.types import Estimate, FullState, StepJoint
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
@@ -68,6 +68,11 @@ if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
 #: excess, ``_shared_excess``), which took unbiased fixes' smoothed NEES from 0.68–0.72 into [1, 4]
 #: (docs/tracking-design.md, "The smoothed covariance re-fitted")
 SMOOTHED_COV_SCALE = 1.38
+#: the same for a particle filter's track smoothed over its cloud's own step moments (``StepJoint``),
+#: fitted by the same rule on the same scenarios, the PF alone (its unscaled smoothed NEES 2.43 there);
+#: 1.38 served its covariance wider than its errors (unbiased fixes' smoothed NEES 0.75–1.01 on the
+#: choosing cells; docs/tracking-design.md, "The PF's RTS from its own cloud")
+ENSEMBLE_COV_SCALE = 1.22
 #: smallest eigenvalue (m²) of a smoothed covariance (a collapsed PF cloud's round-off can leave one negative)
 MIN_VARIANCE = 1e-9
 
@@ -100,22 +105,40 @@ def _psd(A: np.ndarray, floor: float) -> np.ndarray:
 
 
 def _rts(xs: list[np.ndarray], Ps: list[np.ndarray], xp: list[np.ndarray], Pp: list[np.ndarray],
-         Fs: list[np.ndarray], difference=np.subtract) -> tuple[list[np.ndarray], list[np.ndarray]]:
+         Fs: list[np.ndarray], difference=np.subtract,
+         joints: Sequence[StepJoint | None] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The RTS recursion over time indexes 0..n−1: filtered (xs, Ps), predicted (xp[k], Pp[k]: of k
     from k − 1; index 0 unused) and the transitions Fs[k] (k − 1 → k); ``difference`` of two states
-    (the whole state's wraps its angle: ``selfcal.state_difference``)."""
+    (the whole state's wraps its angle: ``selfcal.state_difference``). ``joints[k]``: the step
+    k − 1 → k as a particle cloud saw it (``StepJoint``), used instead of the model there (``_step_gain``)."""
     x_s, P_s = list(xs), list(Ps)
     for k in range(len(xs) - 2, -1, -1):
-        F = Fs[k + 1]
-        FP = F @ Ps[k]
-        P_pred = _predicted_cov(FP @ F.T, Pp[k + 1])
-        C = FP.T @ np.linalg.inv(P_pred)
-        x_s[k] = xs[k] + C @ difference(x_s[k + 1], xp[k + 1])
-        P = Ps[k] + C @ (P_s[k + 1] - P_pred) @ C.T
+        joint = None if joints is None else joints[k + 1]
+        if joint is None:
+            F = Fs[k + 1]
+            FP = F @ Ps[k]
+            P_pred = _predicted_cov(FP @ F.T, Pp[k + 1])
+            C, x0, P0 = FP.T @ np.linalg.inv(P_pred), xs[k], Ps[k]
+        else:
+            C, x0, P0, P_pred = _step_gain(joint, Pp[k + 1])
+        x_s[k] = x0 + C @ difference(x_s[k + 1], xp[k + 1])
+        P = P0 + C @ (P_s[k + 1] - P_pred) @ C.T
         P_s[k] = symmetric(P)
         if np.linalg.eigvalsh(P_s[k])[0] < MIN_VARIANCE:  # round-off after a collapsed PF cloud
             P_s[k] = _psd(P_s[k], MIN_VARIANCE)
     return x_s, P_s
+
+
+def _step_gain(joint: StepJoint, P_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An ensemble RTS step (the gain, the old state's mean and covariance, the predicted covariance)
+    from a particle filter's own joint moments of the step: C = Σ P_{k+1|k}⁻¹, the cloud's regression
+    of its old state on its new, with the mean and covariance of the particles' ancestors under the
+    weights after the step. Walls that killed particles narrowed both Σ and P_{k+1|k}, so the gain
+    stays the cloud's (a model gain against a cloud the walls cut overshoots), and the old state is
+    what the step's survivors say it was."""
+    P_pred = symmetric(P_pred) + 1e-12 * np.eye(len(P_pred))
+    C = np.linalg.solve(P_pred, np.array(joint.cross, float).T).T
+    return C, np.array(joint.origin_mean, float), np.array(joint.origin_covariance, float), P_pred
 
 
 def _shared_excess(estimate: Estimate, state: FullState) -> np.ndarray:
@@ -175,12 +198,13 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
         if full is not None:
             filtered, predicted = full
             Fs = [np.eye(len(filtered[0].mean))] + [_jacobian(filtered[k - 1], predicted[k]) for k in range(1, n)]
+            joints = [None] + [p.joint for p in predicted[1:]]
             x_s, P_s = _rts([np.array(f.mean) for f in filtered], [np.array(f.covariance) for f in filtered],
                             [np.array(f.mean) for f in predicted], [np.array(f.covariance) for f in predicted], Fs,
-                            selfcal.state_difference)
+                            selfcal.state_difference, joints)
             x_s = [x[:2] for x in x_s]
-            P_s = [SMOOTHED_COV_SCALE * P[:2, :2] + _shared_excess(track[i], f)
-                   for P, i, f in zip(P_s, last, filtered, strict=True)]
+            scale = ENSEMBLE_COV_SCALE if n > 1 and all(joints[1:]) else SMOOTHED_COV_SCALE
+            P_s = [scale * P[:2, :2] + _shared_excess(track[i], f) for P, i, f in zip(P_s, last, filtered, strict=True)]
         else:
             fe, pe = [track[i] for i in last], [track[i] for i in first]
             x_s, P_s = _rts([np.array([e.x, e.y]) for e in fe], [np.array(e.covariance, float) for e in fe],
