@@ -135,12 +135,13 @@ class StepJoint:
 
     @classmethod
     def of(cls, old: np.ndarray, new: np.ndarray, weights: np.ndarray) -> StepJoint:
-        """From rows of ancestors' states ``old`` and the particles' ``new`` ones, paired, and the
-        weights; to 7 significant digits (a smoother needs no more, and the track's rows stay short)."""
+        """From rows of ancestors' states ``old`` and the particles' ``new`` ones, paired, and the weights."""
         w = np.asarray(weights, float) / np.sum(weights)
-        a, b = old - w @ old, new - w @ new
-        cov = (a * w[:, None]).T @ a
-        return cls(_short(w @ old), tuple(map(_short, 0.5 * (cov + cov.T))), tuple(map(_short, (a * w[:, None]).T @ b)))
+        X = np.hstack((old, new))
+        A = X - w @ X
+        M = (A * w[:, None]).T @ A  # the pairs' joint covariance, in one product
+        n = old.shape[1]
+        return cls(tuple((w @ old).tolist()), _matrix(0.5 * (M[:n, :n] + M[:n, :n].T)), _matrix(M[:n, n:]))
 
     def to_dict(self) -> dict[str, Any]:
         """The stored form: the origin covariance's upper triangle and the cross-covariance row by row."""
@@ -154,13 +155,8 @@ class StepJoint:
         return cls(tuple(float(v) for v in d["m"]), _matrix(_from_upper(d["P"], n)), _matrix(X))
 
 
-def _short(values: np.ndarray) -> tuple[float, ...]:
-    """Values to 7 significant digits."""
-    return tuple(float(f"{v:.7g}") for v in values)
-
-
-def _matrix(a: np.ndarray) -> tuple[tuple[float, ...], ...]:
-    return tuple(tuple(float(v) for v in row) for row in np.asarray(a, float))
+def _matrix(a) -> tuple[tuple[float, ...], ...]:
+    return tuple(map(tuple, np.asarray(a, float).tolist()))
 
 
 def _upper(m: tuple[tuple[float, ...], ...]) -> list[float]:

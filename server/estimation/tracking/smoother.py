@@ -34,6 +34,17 @@ shrink in a step where walls kill particles, ``_predicted_cov``), and each fix e
 estimate it produced (a refused fix moved nothing there, so it moves nothing here either).
 ``GET /api/v1/sessions/{id}/track?smoothed=true`` serves it.
 
+A particle filter's step is not its model's: walls kill particles, and the grid's reweighing
+moves weight between biases, so the model's gain P Fᵀ P⁻¹ (with Q clipped at 0) overshoots
+where the cloud was cut (its smoothed NEES 11.8 on the stress scenarios with a plan). A ``pf``
+step estimate therefore carries the step's joint moments as its cloud saw them (``StepJoint``:
+each particle paired with its ancestor), and the RTS uses them there (an ensemble RTS smoother,
+Raanes 2016): C_k = Σ_{k,k+1} P_{k+1|k}⁻¹, x_{k|N} = m'_k + C_k (x_{k+1|N} − x_{k+1|k}),
+P_{k|N} = P'_k + C_k (P_{k+1|N} − P_{k+1|k}) C_kᵀ, with m'_k, P'_k the ancestors' moments under
+the weights after the step (what the survivors say the old state was). For a linear-Gaussian
+step those are x_{k|k}, P_{k|k}, P Fᵀ: the RTS above. Chosen on tune/stress and MSFT folds 0–1
+(docs/tracking-design.md, "The PF's RTS from its own cloud"); served ×``ENSEMBLE_COV_SCALE``.
+
 Where the floor has a walkable area (``areas``), a smoothed position outside it is moved to
 its nearest walkable point: the recursion knows nothing of the plan, and a walker is never
 inside a wall. Chosen on MSFT folds 0–1 among other wall-aware and process-noise variants
