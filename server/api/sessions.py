@@ -137,9 +137,10 @@ def get_track(
         "false (default): the live track as estimated."))] = False,
     smoother: Annotated[Literal["rts", "particles"], Query(description=(
         "Extension, with `smoothed=true`. `rts` (default): the RTS smoother over the stored estimates, for "
-        "every filter. `particles`: a `pf`/`pf-xy` session's own particles, smoothed along their ancestry "
-        "(fixed-lag path-space smoother) by replaying the session's kept inputs — better than `rts` where "
-        "walls shape the cloud, slightly worse in open space (see the README); 422 for another filter, 409 "
+        "every filter (a `pf` session's steps through its cloud's own moments of each step, so walls shape "
+        "the gain). `particles`: a `pf`/`pf-xy` session's own particles, smoothed along their ancestry "
+        "(fixed-lag path-space smoother) by replaying the session's kept inputs — no better than `rts` on "
+        "the README's figures, an independent second smoother; 422 for another filter, 409 "
         "when the session's kept inputs no longer reproduce its track (its site's plan or transmitters changed since, or it "
         "was stored before inputs were kept) or it has more than 10,000 batches."))] = "rts",
     since: Annotated[int | None, Query(ge=-1, le=2**31 - 1, description=(
