@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -15,11 +16,11 @@ from server.api.deps import session_service
 from server.errors import Invalid
 from server.estimation.replay import smoothed_by_replay
 from server.estimation.tracking.smoother import smooth_track
-from server.estimation.types import Estimate, Fix
+from server.estimation.types import Estimate, Fix, FullState
 from server.schemas import EstimateOut
 from server.services import sessions as sessions_service
 from server.services.sessions import SessionService
-from server.tables import SessionBatch, TrackingSession
+from server.tables import SessionBatch, TrackEstimate, TrackingSession
 from tests.api.test_sessions import FLOORS, TRANSMITTERS, Located
 
 STEP_S, LENGTH_M, N_STEPS, SCAN_EVERY = 0.5, 0.7, 60, 4
@@ -203,6 +204,33 @@ def test_a_self_calibrating_session_is_smoothed_over_its_whole_state(device, sit
         s.execute(text("UPDATE track_estimates SET state = NULL WHERE session_id = :sid"), {"sid": sid})
     old = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
     assert _same(old, marginal)
+
+
+def test_a_particle_filter_sessions_steps_are_smoothed_through_its_clouds_own_moments(device, site, scripted,
+                                                                                      live_server):
+    """pf: every stored step estimate keeps its cloud's joint moments of the step (``"j"``) and the
+    served smoothed track is the one smoothed through them, read back from the database; the same
+    track stored without them (as before they were kept) is smoothed by the step's model: another
+    answer, served at the Gaussian filters' scale."""
+    sid, truth = _walk(device, site, scripted, filter="pf")
+    with live_server.app.state.db.transaction() as s:
+        rows = s.execute(select(TrackEstimate.idx, TrackEstimate.source, TrackEstimate.state)
+                         .where(TrackEstimate.session_id == sid).order_by(TrackEstimate.idx)).all()
+    assert all(("j" in r.state) == (r.source == "step") for r in rows)
+    live = device.get(f"/api/v1/sessions/{sid}/track").json()
+    smoothed = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
+    states = [FullState.from_dict(r.state) for r in rows]
+    assert _same(smoothed, [e.to_dict() for e in smooth_track(_estimates(live), None, states)])
+    with live_server.app.state.db.transaction() as s:
+        for r in rows:
+            s.execute(update(TrackEstimate).where(TrackEstimate.session_id == sid, TrackEstimate.idx == r.idx)
+                      .values(state={k: v for k, v in r.state.items() if k != "j"}))
+    model = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).json()
+    plain = [replace(f, joint=None) for f in states]
+    assert _same(model, [e.to_dict() for e in smooth_track(_estimates(live), None, plain)])
+    assert not _same(model, smoothed)
+    print(f"mean error: live {_mean_error(live, truth):.2f}, smoothed by the cloud {_mean_error(smoothed, truth):.2f}, "
+          f"by the model {_mean_error(model, truth):.2f} m")
 
 
 def _same(a: list[dict], b: list[dict]) -> bool:
