@@ -134,14 +134,12 @@ class StepJoint:
     cross: tuple[tuple[float, ...], ...]
 
     @classmethod
-    def of(cls, old: np.ndarray, new: np.ndarray, weights: np.ndarray) -> StepJoint:
-        """From rows of ancestors' states ``old`` and the particles' ``new`` ones, paired, and the weights."""
-        w = np.asarray(weights, float) / np.sum(weights)
-        X = np.hstack((old, new))
-        A = X - w @ X
-        M = (A * w[:, None]).T @ A  # the pairs' joint covariance, in one product
-        n = old.shape[1]
-        return cls(tuple((w @ old).tolist()), _matrix(0.5 * (M[:n, :n] + M[:n, :n].T)), _matrix(M[:n, n:]))
+    def of(cls, origin_mean, joint_cov) -> StepJoint:
+        """From the ancestors' mean and the 2n × 2n covariance of the pairs [ancestor, particle]."""
+        M = np.asarray(joint_cov, float)
+        n = len(origin_mean)
+        return cls(tuple(np.asarray(origin_mean, float).tolist()), _matrix(0.5 * (M[:n, :n] + M[:n, :n].T)),
+                   _matrix(M[:n, n:]))
 
     def to_dict(self) -> dict[str, Any]:
         """The stored form: the origin covariance's upper triangle and the cross-covariance row by row."""

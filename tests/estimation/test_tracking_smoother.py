@@ -213,6 +213,7 @@ def test_a_particle_filter_keeps_its_steps_joint_moments_through_kills_and_a_rep
     error aside); with a wall that kills the particles that start west of it, the survivors' ancestors sit east and
     narrower; a replay's descent record goes on through the step as the joint saw it."""
     from server.estimation.tracking import selfcal
+    from server.estimation.tracking.pf import weighted_covariance
 
     t = make_tracker("pf", [0.0, 0.0], np.eye(2), seed=3, n_particles=20000)
     before_m, before_P = t.state_mean, t.state_covariance
@@ -233,7 +234,8 @@ def test_a_particle_filter_keeps_its_steps_joint_moments_through_kills_and_a_rep
     j = walled.step_joint
     assert j.origin_mean[0] > start_m[0] + 0.5 and j.origin_covariance[0][0] < 0.6 * start_P[0, 0]
     assert walled.lineage is not None and walled.lineage.min() >= 0
-    assert j == StepJoint.of(before[walled.lineage], walled.particles[:, :4], walled.weights)
+    pairs = np.hstack((before[walled.lineage], walled.particles[:, :4]))
+    assert j == StepJoint.of(walled.weights @ pairs[:, :4], weighted_covariance(pairs, walled.weights))
 
 
 def test_a_heading_bias_stored_on_either_side_of_the_wrap_smooths_as_the_same_angle():

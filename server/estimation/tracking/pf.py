@@ -599,9 +599,9 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         self.lineage = np.arange(len(before))
         self._step(step)
         rows, self.lineage = self.lineage, None if kept is None else kept[self.lineage]
-        after = self.particles[:, : selfcal.N_AUG]
-        self.step_joint = (StepJoint.of(before[rows], after, self.weights)
-                           if np.isfinite(before).all() and np.isfinite(after).all() else None)  # (else the model's gain)
+        pairs = np.hstack((before[rows], self.particles[:, : selfcal.N_AUG]))
+        self.step_joint = (StepJoint.of(self.weights @ pairs[:, : selfcal.N_AUG], weighted_covariance(pairs, self.weights))
+                           if np.isfinite(pairs).all() else None)  # (else the model's gain)
 
     def _step(self, step: Step) -> None:
         n = len(self.particles)
