@@ -5,7 +5,8 @@ fingerprinting alone — on the good-signal (open room) and poor-signal (corrido
 
 Starts a real server process on a fresh SQLite file, surveys each scenario with
 ``client_sim`` and trains a model, then walks the same phones (same seeds: same walk,
-IMU, PDR steps and scans) once per filter through tracking sessions. Fingerprinting
+IMU, PDR steps and scans) once per filter through tracking sessions, each walk's sessions seeded
+alike (``session_seed``), so a run repeats to the digit, the particle filters included. Fingerprinting
 alone is ``locate`` on every scan; PDR alone is the phone's dead reckoning from the true
 start. Errors are against the simulator's ground truth at each estimate's time. The cost
 column is the tracker library's µs per step + update, measured in this process.
@@ -33,7 +34,7 @@ from tracker_cost import Bench, measure  # noqa: E402
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
-from client_sim.runs import run_survey, track_phone  # noqa: E402
+from client_sim.runs import run_survey, session_seed, track_phone  # noqa: E402
 from client_sim.server_process import free_port, start_server, stop_server  # noqa: E402
 from client_sim.world import get_world  # noqa: E402
 
@@ -73,7 +74,8 @@ async def evaluate(url: str, admin: str, device: str, scenario: str, walks: int,
               for w in range(walks)]
     errors: dict[str, list[float]] = {name: [] for name in ("pdr-only", "fingerprint-only", *filters)}
     async with LocalizerClient(url, device) as api:
-        runs = await asyncio.gather(*(track_phone(api, site_id, trace, f) for trace in traces for f in filters))
+        runs = await asyncio.gather(*(track_phone(api, site_id, trace, f, session_seed=session_seed(seed, w))
+                                       for w, trace in enumerate(traces) for f in filters))
         for run in runs:
             if run["failed_posts"]:
                 raise SystemExit(f"{scenario}/{run['filter']}: {run['failed_posts']} failed posts")

@@ -91,14 +91,16 @@ def _estimate_row(est: dict, trace: PhoneTrace) -> dict:
 
 
 async def track_phone(api: LocalizerClient, site_id, trace: PhoneTrace, filter: str, *, initial: bool = True,
-                      interval_s: float = 2.0, speed: float = 0.0, retries: int = 4, on_batch=None) -> dict:
-    """One phone's session: open, post every batch (retrying with the same seq), read the track."""
+                      interval_s: float = 2.0, speed: float = 0.0, retries: int = 4, on_batch=None,
+                      session_seed: int | None = None) -> dict:
+    """One phone's session: open, post every batch (retrying with the same seq), read the track.
+    ``session_seed`` (the sessions' ``seed`` extension) fixes the tracker's draws; None: the server's."""
     walk = trace.walk
     init = None
     if initial:
         init = {"x": float(walk.xy[0, 0]), "y": float(walk.xy[0, 1]), "floor": int(walk.floor[0]),
                 "heading_deg": float(walk.heading_deg[0])}
-    session = await api.open_session(site_id, filter, init)
+    session = await api.open_session(site_id, filter, init, seed=session_seed)
     rows, failures = [], 0
     started = time.monotonic()
     for batch in trace.batches(interval_s):
@@ -144,12 +146,18 @@ def plan_phones(world: World, phones: int, filters: list[str], seed: int, wifi_h
     return plans
 
 
+def session_seed(run_seed: int, phone: int) -> int:
+    """A phone's session seed (``0..2³²−1``) from the run's seed and its index."""
+    return int(np.random.SeedSequence([run_seed, phone, 0x5E55]).generate_state(1)[0])
+
+
 async def run_track(base_url: str, device_key: str, scenario: World | str, site_id, *, phones: int = 4,
                     filters: list[str] | tuple[str, ...] = ("skpf",), seed: int = 0, interval_s: float = 2.0,
                     speed: float = 0.0, wifi_hz: float = 1.0, ble_hz: float = 2.0, initial: bool = True,
                     retries: int = 4, transport: httpx.AsyncBaseTransport | None = None,
                     progress: bool = False) -> dict:
-    """K phones walk the scenario's routes concurrently, each in its own session."""
+    """K phones walk the scenario's routes concurrently, each in its own session, seeded from ``seed``
+    and the phone (``session_seed``): a run repeats to the digit, a particle filter's draws included."""
     world = _world(scenario)
     plans = plan_phones(world, phones, list(filters), seed, wifi_hz, ble_hz)
     n_batches = sum(len(p[3].batches(interval_s)) for p in plans)
@@ -158,7 +166,8 @@ async def run_track(base_url: str, device_key: str, scenario: World | str, site_
         async def one(i, flt, r_idx, trace):
             try:
                 res = await track_phone(api, site_id, trace, flt, initial=initial, interval_s=interval_s,
-                                        speed=speed, retries=retries, on_batch=bar.update)
+                                        speed=speed, retries=retries, on_batch=bar.update,
+                                        session_seed=session_seed(seed, i))
             except Exception as exc:  # noqa: BLE001 - e.g. the session could not be opened
                 res = {"filter": flt, "error": str(exc), "batch_estimates": [], "track": [], "pdr_only": []}
             return dict(res, phone=i, route=r_idx, truth=trace.walk.to_dict())

@@ -44,6 +44,23 @@ def test_survey_then_track_phones_through_sessions(admin, live_server):
         assert mean < 3.0 and mean < pdr + 1.0, (phone["filter"], mean, pdr)
 
 
+def test_a_tracking_run_repeats_to_the_digit_particle_filter_included(admin, live_server):
+    """Sessions are seeded from the run's seed and the phone, so a PF's draws repeat too."""
+    from client_sim.runs import run_track
+
+    survey = asyncio.run(run_survey(live_server.url, ADMIN_KEY, "open_room", scans_per_heading=1, seed=2, train="knn"))
+
+    def tracks(seed: int) -> list[list[tuple[float, float]]]:
+        result = asyncio.run(run_track(live_server.url, DEVICE_KEY, "open_room", survey["site_id"], phones=2,
+                                       filters=("pf",), seed=seed))
+        assert all("error" not in p and p["failed_posts"] == 0 for p in result["phones"])
+        return [[(r["x"], r["y"]) for r in p["track"]] for p in result["phones"]]
+
+    first = tracks(7)
+    assert tracks(7) == first
+    assert tracks(8) != first
+
+
 def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server):
     from client_sim.runs import run_crowd
 

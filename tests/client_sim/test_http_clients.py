@@ -12,7 +12,7 @@ import httpx
 
 from client_sim.phone import simulate_phone
 from client_sim.report import write_report
-from client_sim.runs import run_survey, run_track, survey_fingerprints
+from client_sim.runs import run_survey, run_track, session_seed, survey_fingerprints
 from client_sim.world import open_room
 
 
@@ -135,6 +135,10 @@ def test_track_retries_failed_posts_with_the_same_seq(tmp_path):
         assert max(e["error_m"] for e in phone["track"]) < 15
     opened = [r[3] for r in fake.requests if r[1] == "/api/v1/sessions"]
     assert all(o["initial"]["floor"] == 0 for o in opened)
+    # every session seeded, each phone its own seed, the same ones for the same run seed
+    assert sorted(o["seed"] for o in opened) == sorted(session_seed(2, i) for i in range(3))
+    assert len({o["seed"] for o in opened}) == 3 and all(0 <= o["seed"] < 2**32 for o in opened)
+    assert session_seed(2, 0) != session_seed(3, 0)
     path = tmp_path / "r.json"
     path.write_text(json.dumps(res))
     table = write_report([path], tmp_path / "rep")
