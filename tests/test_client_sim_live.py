@@ -51,7 +51,7 @@ def test_a_tracking_run_repeats_to_the_digit_particle_filter_included(admin, liv
     survey = asyncio.run(run_survey(live_server.url, ADMIN_KEY, "open_room", scans_per_heading=1, seed=2, train="knn"))
 
     def tracks(seed: int) -> list[list[tuple[float, float]]]:
-        result = asyncio.run(run_track(live_server.url, DEVICE_KEY, "open_room", survey["site_id"], phones=2,
+        result = asyncio.run(run_track(live_server.url, DEVICE_KEY, "open_room", survey["site_id"], phones=1,
                                        filters=("pf",), seed=seed))
         assert all("error" not in p and p["failed_posts"] == 0 for p in result["phones"])
         return [[(r["x"], r["y"]) for r in p["track"]] for p in result["phones"]]
