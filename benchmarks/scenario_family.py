@@ -209,6 +209,9 @@ class World:
         rows = []
         for p in self.survey_points():
             scans = [self.rss(p, None, rng) for _ in range(3)]
+            if SURVEY_ROWS[0] == "scans":  # each scan its own fingerprint, as a survey tool uploads them
+                rows += [{"x": float(p[0]), "y": float(p[1]), "floor": 0, "rss": dict(s)} for s in scans if s]
+                continue
             keys = set().union(*scans)
             rows.append({"x": float(p[0]), "y": float(p[1]), "floor": 0,
                          "rss": {k: float(np.mean([s.get(k, -100.0) for s in scans])) for k in keys}})
@@ -333,6 +336,9 @@ def located(w: Walk, fixes: GaussianFixes | ModelFixes) -> list[tuple[Fix, np.nd
 # --------------------------------------------------------------------------- running
 #: the fingerprint model of the ``knn`` fixes (``--algorithm``)
 ALGORITHM = ["knn"]
+#: the survey's fingerprints: "mean" (each point's 3 scans averaged, the family's definition) or "scans"
+#: (each scan its own row; ``--survey-rows``, a diagnostic of how the calibration transfers)
+SURVEY_ROWS = ["mean"]
 MODEL_PARAMS: dict = {}  # the fingerprint model's params (--model-params)
 #: tracker keyword arguments per filter name (``--set``)
 PARAMS: dict[str, dict] = {}
@@ -504,6 +510,9 @@ def main() -> int:
                     help='the fingerprint model\'s params as JSON, e.g. \'{"offset_estimate": false}\'')
     ap.add_argument("--set", action="append", default=[], metavar="FILTER.PARAM=VALUE",
                     help="a tracker parameter, e.g. ekf.bias_walk_deg=0.5 (repeatable)")
+    ap.add_argument("--survey-rows", choices=("mean", "scans"), default="mean",
+                    help="the survey's 3 scans per point averaged into one fingerprint (the family's definition) "
+                         "or uploaded as 3 fingerprints (a diagnostic)")
     ap.add_argument("--plan", action="store_true", help="the floor has the loop's plan (walls and walkable area)")
     ap.add_argument("--corridor-m", type=float, default=3.0, help="the corridor's width with --plan (m)")
     ap.add_argument("--compass-off", type=float, default=None, metavar="DEG",
@@ -522,6 +531,7 @@ def main() -> int:
     COLD[0] = a.cold
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
+    SURVEY_ROWS[0] = a.survey_rows
     MODEL_PARAMS.update(a.model_params)
     CORRIDOR_M[0] = a.corridor_m if a.plan else None
     for item in a.set:
@@ -545,6 +555,7 @@ def main() -> int:
                  f"{f' ({len(scenarios)} with a landmark snap)' if a.with_snap else ''}, {what} fixes"
                  f"{f', the compass {a.compass_off:g}° off at the start' if a.compass_off is not None else ''}"
                  f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''}"
+                 f"{', survey scans as rows' if a.survey_rows == 'scans' else ''}"
                  f"{', cold start' if a.cold else ''} "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
