@@ -222,8 +222,9 @@ async def run_crowd(base_url: str, admin_key: str, device_key: str, scenario: Wo
         for r in tqdm(range(rounds), desc="crowd rounds", disable=not progress):
             plans = plan_phones(world, phones, [filter], seed * 1000 + r, wifi_hz, ble_hz, random_routes=True)
             results = await asyncio.gather(*(
-                track_phone(device, site_id, trace, flt, initial=False, interval_s=interval_s)
-                for _, flt, _, trace in plans), return_exceptions=True)
+                track_phone(device, site_id, trace, flt, initial=False, interval_s=interval_s,
+                            session_seed=session_seed(seed * 1000 + r, i))
+                for i, flt, _, trace in plans), return_exceptions=True)
             walked = [x for x in results if isinstance(x, dict)]
             entry: dict[str, Any] = {"round": r, "phones": phones, "sessions_ok": len(walked),
                                      "session_errors": [str(x) for x in results if not isinstance(x, dict)][:3]}
