@@ -25,6 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from client_sim.errors import seed_int  # noqa: E402
 from client_sim.runs import run_crowd  # noqa: E402
 from client_sim.server_process import free_port, start_server, stop_server  # noqa: E402
 
@@ -36,7 +37,7 @@ def main() -> None:
     parser.add_argument("--phones", type=int, default=10)
     parser.add_argument("--probes", type=int, default=40)
     parser.add_argument("--filter", default="ekf")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed_int, default=0)
     parser.add_argument("--out", default="reports/crowd.json")
     args = parser.parse_args()
 

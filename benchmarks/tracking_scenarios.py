@@ -31,6 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from tracker_cost import Bench, measure  # noqa: E402
 
+from client_sim.errors import seed_int  # noqa: E402
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
@@ -94,7 +95,7 @@ def main() -> None:
     parser.add_argument("--walks", type=int, default=6, help="walks per scenario (each replayed once per filter)")
     parser.add_argument("--filters", default=",".join(FILTERS))
     parser.add_argument("--algorithm", default="knn")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=seed_int, default=0)
     parser.add_argument("--out", default="reports/tracking")
     args = parser.parse_args()
     filters = args.filters.split(",")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .errors import EXIT_USAGE, CliError, explain
+from .errors import EXIT_USAGE, CliError, explain, seed_int
 from .http_client import LocalizerClient
 
 
@@ -244,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenario", help="open_room | corridor_loop | multi_floor | path/to/world.json")
     p.add_argument("--json", help="write the world as JSON here")
     p.add_argument("--png", help="plot the floor plan(s) with one walk here")
-    p.add_argument("--seed", type=int, default=0, help="seed of the plotted walk")
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of the plotted walk")
     p.set_defaults(func=cmd_scenario)
 
     p = command("survey", "create the scenario's site and upload a survey")
@@ -254,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train", help="request a model with this algorithm (nbc, knn, svm, ...) and wait for it")
     p.add_argument("--site-name", help="name of the new site (default: the scenario's name)")
     p.add_argument("--site-id", type=int, help="upload into this site instead of creating one")
-    p.add_argument("--seed", type=int, default=0, help="survey noise seed")
+    p.add_argument("--seed", type=seed_int, default=0, help="survey noise seed")
     p.add_argument("--out", default="reports/survey_results.json", help="result JSON")
     p.set_defaults(func=cmd_survey)
 
@@ -270,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ble-hz", type=float, default=2.0, help="BLE scans per second")
     p.add_argument("--no-initial", action="store_true", help="open sessions without the true start")
     p.add_argument("--retries", type=int, default=4, help="re-sends of a failed batch (same seq)")
-    p.add_argument("--seed", type=int, default=0, help="walks, gaits and radio noise seed")
+    p.add_argument("--seed", type=seed_int, default=0, help="walks, gaits and radio noise seed")
     p.add_argument("--out", default="reports/track_results.json", help="result JSON (input of report)")
     p.set_defaults(func=cmd_track)
 
@@ -284,7 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train", default="knn", help="algorithm trained after each round ('' = none)")
     p.add_argument("--probes", type=int, default=20, help="locate probes per round")
     p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
-    p.add_argument("--seed", type=int, default=0, help="walks and radio noise seed")
+    p.add_argument("--seed", type=seed_int, default=0, help="walks and radio noise seed")
     p.add_argument("--out", default="reports/crowd_results.json", help="result JSON")
     p.set_defaults(func=cmd_crowd)
 
@@ -295,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device-key", default="dev-device-key", help="the server's device key")
     p.add_argument("--database-url", help="default: the server's own (SQLite localizer.db in the repository)")
     p.add_argument("--out", default="reports/demo", help="report directory")
-    p.add_argument("--seed", type=int, default=0, help="survey and walks seed")
+    p.add_argument("--seed", type=seed_int, default=0, help="survey and walks seed")
     p.add_argument("--once", action="store_true", help="stop the server after the report instead of serving on")
     p.set_defaults(func=cmd_demo)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import httpx
 
 from .http_client import ApiError
@@ -37,3 +39,15 @@ def explain(exc: BaseException, url: str | None) -> CliError | None:
     if isinstance(exc, OSError) and exc.filename:
         return CliError(f"{exc.filename}: {exc.strerror}", EXIT_USAGE)
     return None
+
+
+def seed_int(text: str) -> int:
+    """An argparse type for ``--seed``: a non-negative integer (numpy's generators take no negative
+    seed), else a usage error naming the value."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {text!r}")
+    return value

@@ -129,3 +129,12 @@ def test_msft_filter_params_that_are_not_an_object_of_objects_are_one_line_and_e
     argv = ["msft", str(tmp_path), "--folds", "4", "--filter-params", params]  # refused before any server starts
     assert main(argv) == 2
     assert one_error(capsys).startswith("--filter-params")
+
+
+@pytest.mark.parametrize("argv", [["demo", "--once", "--seed", "-1"], ["scenario", "open_room", "--seed", "x"],
+                                  ["track", "--scenario", "open_room", "--site-id", "1", "--seed", "-3"]])
+def test_a_seed_that_is_not_a_non_negative_integer_is_a_usage_error(capsys, argv):
+    with pytest.raises(SystemExit) as e:  # refused by the parser, before any server or numpy generator
+        main(argv)
+    assert e.value.code == 2
+    assert "argument --seed: must be a non-negative integer" in capsys.readouterr().err
