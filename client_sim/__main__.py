@@ -17,7 +17,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .errors import EXIT_USAGE, CliError, explain, seed_int
+from .errors import EXIT_USAGE, CliError, explain, number, seed_int
 from .http_client import LocalizerClient
 
 
@@ -250,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = command("survey", "create the scenario's site and upload a survey")
     _server_args(p, admin=True, device=False)
     p.add_argument("--scenario", default="open_room", help="open_room | corridor_loop | multi_floor | world.json")
-    p.add_argument("--scans", type=int, default=5, help="scans per heading per reference point")
+    p.add_argument("--scans", type=number(int, 1), default=5, help="scans per heading per reference point")
     p.add_argument("--train", help="request a model with this algorithm (nbc, knn, svm, ...) and wait for it")
     p.add_argument("--site-name", help="name of the new site (default: the scenario's name)")
     p.add_argument("--site-id", type=int, help="upload into this site instead of creating one")
@@ -262,14 +262,14 @@ def build_parser() -> argparse.ArgumentParser:
     _server_args(p, admin=False, device=True)
     p.add_argument("--scenario", default="open_room", help="open_room | corridor_loop | multi_floor | world.json")
     p.add_argument("--site-id", type=int, required=True, help="the scenario's site on the server (from survey)")
-    p.add_argument("--phones", type=int, default=4, help="phones walking at once")
+    p.add_argument("--phones", type=number(int, 1), default=4, help="phones walking at once")
     p.add_argument("--filters", default="skpf", help="comma list, assigned to phones round-robin")
-    p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
-    p.add_argument("--speed", type=float, default=0.0, help="1 = real time, 10 = 10x, 0 = as fast as possible")
-    p.add_argument("--wifi-hz", type=float, default=1.0, help="WiFi scans per second")
-    p.add_argument("--ble-hz", type=float, default=2.0, help="BLE scans per second")
+    p.add_argument("--interval", type=number(float, 0, above=True), default=2.0, help="seconds of phone time per batch")
+    p.add_argument("--speed", type=number(float, 0), default=0.0, help="1 = real time, 10 = 10x, 0 = as fast as possible")
+    p.add_argument("--wifi-hz", type=number(float, 0), default=1.0, help="WiFi scans per second")
+    p.add_argument("--ble-hz", type=number(float, 0), default=2.0, help="BLE scans per second")
     p.add_argument("--no-initial", action="store_true", help="open sessions without the true start")
-    p.add_argument("--retries", type=int, default=4, help="re-sends of a failed batch (same seq)")
+    p.add_argument("--retries", type=number(int, 0), default=4, help="re-sends of a failed batch (same seq)")
     p.add_argument("--seed", type=seed_int, default=0, help="walks, gaits and radio noise seed")
     p.add_argument("--out", default="reports/track_results.json", help="result JSON (input of report)")
     p.set_defaults(func=cmd_track)
@@ -278,19 +278,19 @@ def build_parser() -> argparse.ArgumentParser:
     _server_args(p, admin=True, device=True)
     p.add_argument("--scenario", default="corridor_loop", help="open_room | corridor_loop | multi_floor | world.json")
     p.add_argument("--site-id", type=int, help="use this site instead of creating one")
-    p.add_argument("--rounds", type=int, default=3, help="rounds of walks, each followed by training")
-    p.add_argument("--phones", type=int, default=10, help="phones per round")
+    p.add_argument("--rounds", type=number(int, 0), default=3, help="rounds of walks, each followed by training")
+    p.add_argument("--phones", type=number(int, 1), default=10, help="phones per round")
     p.add_argument("--filter", default="skpf", help="the sessions' tracker")
     p.add_argument("--train", default="knn", help="algorithm trained after each round ('' = none)")
-    p.add_argument("--probes", type=int, default=20, help="locate probes per round")
-    p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
+    p.add_argument("--probes", type=number(int, 0), default=20, help="locate probes per round")
+    p.add_argument("--interval", type=number(float, 0, above=True), default=2.0, help="seconds of phone time per batch")
     p.add_argument("--seed", type=seed_int, default=0, help="walks and radio noise seed")
     p.add_argument("--out", default="reports/crowd_results.json", help="result JSON")
     p.set_defaults(func=cmd_crowd)
 
     p = command("demo", "start a server on SQLite, survey a demo site, track simulated phones, keep serving")
-    p.add_argument("--phones", type=int, default=12, help="phones tracked (filters round-robin)")
-    p.add_argument("--port", type=int, default=8000, help="the server's port on 127.0.0.1")
+    p.add_argument("--phones", type=number(int, 1), default=12, help="phones tracked (filters round-robin)")
+    p.add_argument("--port", type=number(int, 1, high=65535), default=8000, help="the server's port on 127.0.0.1")
     p.add_argument("--admin-key", default="dev-admin-key", help="the server's admin key")
     p.add_argument("--device-key", default="dev-device-key", help="the server's device key")
     p.add_argument("--database-url", help="default: the server's own (SQLite localizer.db in the repository)")
@@ -303,8 +303,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data_dir", help="msft_site1_f1 directory (or its path_data_files)")
     p.add_argument("--map-walks", help="comma list of indices or file names (default: every walk not tested)")
     p.add_argument("--test-walks", help="comma list of indices or file names (default: every --every-th from 1)")
-    p.add_argument("--every", type=int, default=4, help="default split: walks 1, 1+N, 1+2N... are test walks")
-    p.add_argument("--folds", type=int, help="K-fold: walk i is a test walk in fold i %% K (all walks tested; "
+    p.add_argument("--every", type=number(int, 2), default=4, help="default split: walks 1, 1+N, 1+2N... are test walks")
+    p.add_argument("--folds", type=number(int, 2), help="K-fold: walk i is a test walk in fold i %% K (all walks tested; "
                                              "overrides --map-walks/--test-walks)")
     p.add_argument("--filters", default="skpf,ekf,ukf,kf,pf,fkf", help="trackers replayed")
     p.add_argument("--algorithm", default="knn", help="fingerprint model")
@@ -317,8 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--heading", choices=("gyro", "kalman", "quasi-static", "qekf"), default="gyro",
                    help="the phones' PDR heading: the gyro aligned once by the compass (gyro), gyro + compass "
                         "Kalman (kalman), compass in undisturbed field only (quasi-static), gyro + gravity (qekf)")
-    p.add_argument("--max-age", type=float, default=3.0, help="drop WiFi entries last seen longer ago (s)")
-    p.add_argument("--interval", type=float, default=2.0, help="seconds of phone time per batch")
+    p.add_argument("--max-age", type=number(float, 0, above=True), default=3.0, help="drop WiFi entries last seen longer ago (s)")
+    p.add_argument("--interval", type=number(float, 0, above=True), default=2.0, help="seconds of phone time per batch")
     p.add_argument("--initial", choices=("yes", "no", "both"), default="yes",
                    help="open sessions at the first waypoint, without it, or both")
     p.add_argument("--fix-noise", default="auto",
@@ -329,11 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "about each walk's median (white), or no std fields, the server's defaults (none)")
     p.add_argument("--no-session-scans", action="store_true",
                    help="sessions get the steps only, no scans (a diagnostic: the trackers without any fix)")
-    p.add_argument("--concurrency", type=int, default=4, help="test walks replayed at once")
+    p.add_argument("--concurrency", type=number(int, 1), default=4, help="test walks replayed at once")
     p.add_argument("--only-folds", help="with --folds: run only these folds (comma list, e.g. 0,1)")
     p.add_argument("--plan", default="none", help="floor plan variants, comma list of none, walls (stores and "
                                                   "outline as walls), walkable (walls + walkable area)")
-    p.add_argument("--plan-margin", type=float, default=0.0, help="grow the plan's stores by this much (m)")
+    p.add_argument("--plan-margin", type=number(float, 0), default=0.0, help="grow the plan's stores by this much (m)")
     p.add_argument("--seed-salt", type=int, help="seed each session from its walk and this number (the sessions' "
                    "seed extension): two runs with the same salt use the same random draws walk by walk")
     p.add_argument("--filter-params", help="tracker parameters per filter (the sessions' filter_params extension), "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 import httpx
 
@@ -41,13 +42,26 @@ def explain(exc: BaseException, url: str | None) -> CliError | None:
     return None
 
 
-def seed_int(text: str) -> int:
-    """An argparse type for ``--seed``: a non-negative integer (numpy's generators take no negative
-    seed), else a usage error naming the value."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be a non-negative integer, not {text!r}")
-    return value
+def number(kind: type, low: float, *, above: bool = False, high: float | None = None):
+    """An argparse type: a ``kind`` (int or float) at least ``low`` (greater, with ``above``) and at most
+    ``high``; anything else is a usage error naming the value (a zero interval divided by zero, a
+    negative count crashed numpy, with a traceback)."""
+    what = f"{'an integer' if kind is int else 'a number'} {'>' if above else '≥'} {low:g}"
+    what += "" if high is None else f" and ≤ {high:g}"
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not math.isfinite(value) or (value <= low if above else value < low) or \
+                (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
+        return value
+
+    parse.__name__ = f"{kind.__name__} {what}"  # (argparse names the type in its messages)
+    return parse
+
+
+#: ``--seed``: numpy's generators take no negative seed
+seed_int = number(int, 0)

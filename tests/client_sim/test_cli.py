@@ -137,4 +137,20 @@ def test_a_seed_that_is_not_a_non_negative_integer_is_a_usage_error(capsys, argv
     with pytest.raises(SystemExit) as e:  # refused by the parser, before any server or numpy generator
         main(argv)
     assert e.value.code == 2
-    assert "argument --seed: must be a non-negative integer" in capsys.readouterr().err
+    assert "argument --seed: must be an integer ≥ 0, not" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, option, message", [
+    (["msft", ".", "--interval", "0"], "--interval", "must be a number > 0, not '0'"),
+    (["track", "--scenario", "open_room", "--site-id", "1", "--interval", "nan"], "--interval", "must be a number > 0"),
+    (["track", "--scenario", "open_room", "--site-id", "1", "--phones", "0"], "--phones", "must be an integer ≥ 1"),
+    (["crowd", "--scenario", "open_room", "--probes", "-1"], "--probes", "must be an integer ≥ 0"),
+    (["msft", ".", "--folds", "1"], "--folds", "must be an integer ≥ 2, not '1'"),
+    (["demo", "--port", "70000"], "--port", "must be an integer ≥ 1 and ≤ 65535"),
+])
+def test_a_count_or_interval_out_of_range_is_a_usage_error(capsys, argv, option, message):
+    """Refused by the parser, before any server starts (a zero interval divided by zero before)."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert f"argument {option}: {message}" in capsys.readouterr().err
