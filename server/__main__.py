@@ -12,15 +12,32 @@ from server.db import Database
 from server.store import keys as store
 
 
+def _int_in(low: int, high: int | None = None):
+    """An argparse type: an integer in [low, high], else a usage error naming the value (uvicorn took
+    ``--port 70000`` for another port and ``--log-level loud`` with a traceback)."""
+    what = f"an integer ≥ {low}" + ("" if high is None else f" and ≤ {high}")
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
+        return value
+
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m server", description="Indoor positioning service.")
     commands = parser.add_subparsers(dest="command", required=True)
 
     serve = commands.add_parser("serve", help="apply pending migrations, then run the HTTP server")
     serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=8000)
-    serve.add_argument("--workers", type=int, default=1, help="server processes (share the database)")
-    serve.add_argument("--log-level", default="info")
+    serve.add_argument("--port", type=_int_in(1, 65535), default=8000)
+    serve.add_argument("--workers", type=_int_in(1), default=1, help="server processes (share the database)")
+    serve.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug", "trace"))
 
     commands.add_parser("migrate", help="apply pending database migrations and exit")
     commands.add_parser("worker", help="train queued models (for servers run with LOCALIZER_EMBEDDED_WORKER=false)")

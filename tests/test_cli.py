@@ -73,3 +73,14 @@ def test_evaluate_cli_runs_as_a_module():
     )
     assert result.returncode == 0, result.stderr
     assert "localizer_tools.evaluate" in result.stdout and "--algorithms" in result.stdout
+
+
+def test_serve_refuses_a_port_workers_or_log_level_it_cannot_use_before_touching_the_database(tmp_path):
+    db = tmp_path / "never.db"
+    env = {"LOCALIZER_DATABASE_URL": f"sqlite:///{db}"}
+    for args, message in [(("--port", "70000"), "argument --port: must be an integer ≥ 1 and ≤ 65535, not '70000'"),
+                          (("--workers", "0"), "argument --workers: must be an integer ≥ 1, not '0'"),
+                          (("--log-level", "loud"), "argument --log-level: invalid choice: 'loud'")]:
+        result = run_cli("serve", *args, env=env)
+        assert result.returncode == 2 and message in result.stderr, (args, result.stderr)
+    assert not db.exists()  # refused by the parser: no migration ran
