@@ -242,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail("an admin key is needed: pass --key or set LOCALIZER_ADMIN_KEY (or LOCALIZER_API_KEY)", 2)
     if not args.file.is_file():
         return _fail(f"{args.file}: no such file", 2)
+    if args.chunk_size < 1:
+        return _fail(f"--chunk-size must be at least 1 row, not {args.chunk_size}", 2)
     try:
         return upload(
             args.file, args.url, args.key, args.site, args.format or guess_format(args.file), args.chunk_size,

@@ -84,6 +84,12 @@ def test_cli_missing_file_or_key(capsys, monkeypatch):
         2, ["error: an admin key is needed: pass --key or set LOCALIZER_ADMIN_KEY (or LOCALIZER_API_KEY)"])
 
 
+def test_cli_chunk_size_below_one_row(capsys):
+    for size in ("0", "-5"):
+        assert cli(capsys, str(FIXTURES / "uji_tiny.csv"), "--site", "1", "--key", "k", "--chunk-size", size) == (
+            2, [f"error: --chunk-size must be at least 1 row, not {size}"])
+
+
 def test_cli_dead_server(capsys):
     url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     code, err = cli(capsys, str(FIXTURES / "uji_tiny.csv"), "--site", "1", "--key", "k", "--url", url)
