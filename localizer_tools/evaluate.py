@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(a) -> int:
+    if not 0.0 < a.test_fraction < 1.0:  # (NaN fails too)
+        raise ValueError(f"--test-fraction must lie strictly between 0 and 1, not {a.test_fraction}")
     fs = load(a.train, a.format)
     if not len(fs):
         raise ValueError(f"{a.train}: no fingerprint hears any transmitter")

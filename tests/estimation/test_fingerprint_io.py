@@ -144,6 +144,15 @@ def test_evaluate_cli_shifts_the_test_readings(tmp_path, capsys, site_and_survey
     assert "--shift-db must be a finite number" in capsys.readouterr().err
 
 
+def test_evaluate_cli_refuses_a_test_fraction_outside_0_1(tmp_path, capsys, site_and_survey):
+    _, fs = site_and_survey
+    path = tmp_path / "s.csv"
+    write_survey_csv(fs, path)
+    for fraction in ("0", "1", "1.5", "nan"):
+        assert evaluate_cli.main([str(path), "--split", "random", "--algorithms", "nbc", "--test-fraction", fraction]) == 2
+        assert f"--test-fraction must lie strictly between 0 and 1, not {float(fraction)}" in capsys.readouterr().err
+
+
 def test_evaluate_on_an_empty_test_set_gives_nan_figures(site_and_survey):
     _, fs = site_and_survey
     metrics = evaluate(make_model("knn").fit(fs), fs.subset(np.zeros(len(fs), dtype=bool)))
