@@ -64,6 +64,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from client_sim.errors import number  # noqa: E402
 from server.estimation.building_grid import survey_grids  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 from server.estimation.fingerprint.metrics import fit_and_validate  # noqa: E402
@@ -497,13 +498,13 @@ def markdown(rows: list[dict], title: str) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", choices=sorted(RANGES), default="heldout")
-    ap.add_argument("--n", type=int, default=12, help="scenarios")
-    ap.add_argument("--first", type=int, default=0, help="index of the first scenario")
+    ap.add_argument("--n", type=number(int, 1), default=12, help="scenarios")
+    ap.add_argument("--first", type=number(int, 0), default=0, help="index of the first scenario")
     ap.add_argument("--filters", default=",".join(FILTERS))
     ap.add_argument("--fixes", choices=("knn", "gaussian", "both", "shared"), default="both",
                     help="knn: the fixes of a fingerprint model (--algorithm), gaussian: truth plus Gaussian noise, "
                          "both: those two, shared: truth plus an error shared along the walk as on real walks")
-    ap.add_argument("--cov-scale", type=float, default=1.0,
+    ap.add_argument("--cov-scale", type=number(float, 0, above=True), default=1.0,
                     help="multiply the model's (already calibrated) fix covariance by this (default 1: as served)")
     ap.add_argument("--algorithm", default="knn", help="fingerprint model for the model fixes (knn, wknn, ...)")
     ap.add_argument("--model-params", type=json.loads, default={},
@@ -514,13 +515,13 @@ def main() -> int:
                     help="the survey's 3 scans per point averaged into one fingerprint (the family's definition) "
                          "or uploaded as 3 fingerprints (a diagnostic)")
     ap.add_argument("--plan", action="store_true", help="the floor has the loop's plan (walls and walkable area)")
-    ap.add_argument("--corridor-m", type=float, default=3.0, help="the corridor's width with --plan (m)")
+    ap.add_argument("--corridor-m", type=number(float, 0, above=True), default=3.0, help="the corridor's width with --plan (m)")
     ap.add_argument("--compass-off", type=float, default=None, metavar="DEG",
                     help="every scenario's PDR starts DEG off (the sign of its drawn initial bias): a compass far "
                          "off at the start, as on 2 of the 43 MSFT walks (≈ 45°); the other draws are unchanged")
     ap.add_argument("--with-snap", action="store_true",
                     help="only the scenarios among --first/--n whose walk triggers a landmark snap")
-    ap.add_argument("--lag", type=int, default=DEFAULT_LAG,
+    ap.add_argument("--lag", type=number(int, 0), default=DEFAULT_LAG,
                     help="the PF's particle smoother's lag (estimates; the server's default)")
     ap.add_argument("--cold", action="store_true",
                     help="sessions open without an initial position: the first scan's fix starts them (cold start; "

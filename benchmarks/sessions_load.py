@@ -44,6 +44,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.http_load import client, closed_loop, cpu_seconds, database_cpu_seconds  # noqa: E402
+from client_sim.errors import number  # noqa: E402
 from client_sim.server_process import start_server, stop_server  # noqa: E402
 from server.auth import create_key  # noqa: E402
 from server.db import Database  # noqa: E402
@@ -242,13 +243,13 @@ def print_capacity(rounds: list[Round], on_postgres: bool) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--phones", type=int, default=200)
-    parser.add_argument("--seconds", type=int, default=30, help="batches per phone (one a second)")
+    parser.add_argument("--phones", type=number(int, 1), default=200)
+    parser.add_argument("--seconds", type=number(int, 1), default=30, help="batches per phone (one a second)")
     parser.add_argument("--filter", default="skpf")
-    parser.add_argument("--workers", type=int, default=1, help="server processes")
+    parser.add_argument("--workers", type=number(int, 1), default=1, help="server processes")
     parser.add_argument("--database-url", help="default: a new SQLite file")
-    parser.add_argument("--port", type=int, default=8793)
-    parser.add_argument("--rounds", type=int, default=3,
+    parser.add_argument("--port", type=number(int, 1, high=65535), default=8793)
+    parser.add_argument("--rounds", type=number(int, 1), default=3,
                         help="closed-loop capacity rounds, healthz and batches in turn (the median is the figure)")
     parser.add_argument("--stored-key", action="store_true",
                         help="phones use a key created as `python -m server keys create` makes one (looked up in "

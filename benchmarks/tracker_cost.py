@@ -31,6 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.sessions_load import walk  # noqa: E402
+from client_sim.errors import number  # noqa: E402
 from server.estimation.replay import RecordedBatch, RecordingFixes, smoothed_by_replay  # noqa: E402
 from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking import make_tracker, tracker_from_dict, tracker_names  # noqa: E402
@@ -158,8 +159,8 @@ def measure(benches: dict[str, Bench], rounds: int = ROUNDS) -> dict[str, dict[s
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeat", type=int, default=500)
-    parser.add_argument("--rounds", type=int, default=ROUNDS, help="rounds, interleaved across trackers (best kept)")
+    parser.add_argument("--repeat", type=number(int, 1), default=500)
+    parser.add_argument("--rounds", type=number(int, 1), default=ROUNDS, help="rounds, interleaved across trackers (best kept)")
     args = parser.parse_args()
     benches = {name: Bench(name, args.repeat) for name in tracker_names()}
     benches["pf, no plan"] = Bench("pf", args.repeat, walls=None)

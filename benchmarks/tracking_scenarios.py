@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from tracker_cost import Bench, measure  # noqa: E402
 
-from client_sim.errors import seed_int  # noqa: E402
+from client_sim.errors import number, seed_int  # noqa: E402
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
@@ -92,7 +92,7 @@ async def evaluate(url: str, admin: str, device: str, scenario: str, walks: int,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenarios", default=",".join(SCENARIOS))
-    parser.add_argument("--walks", type=int, default=6, help="walks per scenario (each replayed once per filter)")
+    parser.add_argument("--walks", type=number(int, 1), default=6, help="walks per scenario (each replayed once per filter)")
     parser.add_argument("--filters", default=",".join(FILTERS))
     parser.add_argument("--algorithm", default="knn")
     parser.add_argument("--seed", type=seed_int, default=0)
