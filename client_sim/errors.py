@@ -59,7 +59,6 @@ def number(kind: type, low: float, *, above: bool = False, high: float | None = 
             raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
         return value
 
-    parse.__name__ = f"{kind.__name__} {what}"  # (argparse names the type in its messages)
     return parse
 
 
