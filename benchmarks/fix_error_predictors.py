@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
+from client_sim.errors import number  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, make_model  # noqa: E402
 
 FEATURES = ("raw σ", "coverage distance", "heard", "known", "top posterior")
@@ -51,9 +52,10 @@ def fold_features(rows: list[list[dict]], fold: int, folds: int, algorithm: str)
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data_dir", nargs="?", default=str(SHARED_DATA / "msft_site1_f1"))
-    parser.add_argument("--folds", type=int, default=4)
+    parser.add_argument("--folds", type=number(int, 2), default=4)
     parser.add_argument("--algorithm", default="knn")
-    parser.add_argument("--max-age", type=float, default=3.0, help="WiFi entries older than this (s) are dropped")
+    parser.add_argument("--max-age", type=number(float, 0, above=True), default=3.0,
+                        help="WiFi entries older than this (s) are dropped")
     args = parser.parse_args()
     _, rows = walk_rows(args.data_dir, args.max_age)
     per_fold = [fold_features(rows, f, args.folds, args.algorithm) for f in range(args.folds)]
