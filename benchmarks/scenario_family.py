@@ -74,7 +74,7 @@ from server.estimation.session import SessionEstimator  # noqa: E402
 from server.estimation.tracking.landmarks import LandmarkCorrector  # noqa: E402
 from server.estimation.tracking.particle_smoother import DEFAULT_LAG  # noqa: E402
 from server.estimation.tracking.smoother import smooth_track  # noqa: E402
-from server.estimation.types import Area, Beacon, Estimate, Fix, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
+from server.estimation.types import Area, Beacon, Estimate, Fix, InitialHeading, NoFix, Scan, SiteMap, Step, step_displacement  # noqa: E402
 
 FILTERS = ("ekf", "ukf", "pf", "skpf", "ekf-xy", "ukf-xy", "pf-xy", "skpf-xy", "kf", "fkf")
 
@@ -349,6 +349,9 @@ CORRIDOR_M: list[float | None] = [None]
 LAG = [DEFAULT_LAG]
 #: sessions open without an initial position (``--cold``): the first scan's fix starts them
 COLD = [False]
+#: σ (degrees) with which sessions are told the walker's true direction at the start
+#: (``--initial-heading-std``; None: not told)
+INITIAL_HEADING_STD: list[float | None] = [None]
 
 
 @dataclass
@@ -370,7 +373,9 @@ def replay(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -> Re
     """A batch every ``batch_s`` s, the session stored and loaded between batches (as the server does)."""
     est = SessionEstimator(name, seed=7, tracker_params=PARAMS.get(name))
     if not COLD[0]:
-        est.start(w.truth[0], None, 0, [], None, "init")
+        std = INITIAL_HEADING_STD[0]
+        est.start(w.truth[0], None, 0, [], None, "init",
+                  heading=None if std is None else InitialHeading(initial_direction_deg(w), std))
     out = Replay(est, opening=json.loads(json.dumps(est.to_dict())))
     steps, scans = list(w.steps), list(w.scans)
     t_end = batch_s
@@ -424,9 +429,22 @@ def run_filter(name: str, w: Walk, fixes, site: SiteMap, batch_s: float = 2.0) -
             "state_bytes": r.state_bytes, "bias_deg": getattr(r.estimator.tracker, "heading_bias_deg", None)}
 
 
-def pdr_errors(w: Walk) -> list[float]:
-    pos = np.cumsum([w.truth[0]] + [step_displacement(s.length_m, s.heading_deg) for s in w.steps], axis=0)
+def pdr_errors(w: Walk, turn_deg: float = 0.0) -> list[float]:
+    """PDR alone from the true start; ``turn_deg``: every step's heading turned by it."""
+    pos = np.cumsum([w.truth[0]] + [step_displacement(s.length_m, s.heading_deg + turn_deg) for s in w.steps], axis=0)
     return np.hypot(*(pos[1:] - w.truth[1:]).T).tolist()
+
+
+def initial_direction_deg(w: Walk) -> float:
+    """The walker's true direction over the first step (degrees clockwise from +y)."""
+    dx, dy = np.asarray(w.truth[1], float) - np.asarray(w.truth[0], float)
+    return math.degrees(math.atan2(dx, dy))
+
+
+def baselines() -> list[str]:
+    """PDR alone, with ``pdr-aligned`` (the phone's PDR turned by the start's true direction against
+    its first step) when sessions are told it, and fingerprinting alone."""
+    return ["pdr-only", *(["pdr-aligned"] if INITIAL_HEADING_STD[0] is not None else []), "fingerprint-only"]
 
 
 def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict:
@@ -445,6 +463,8 @@ def run_scenario(sc: Scenario, filters, fix_kind: str, cov_scale: float) -> dict
         walls, walkable = world.plan(CORRIDOR_M[0])
         site = replace(site, walls={(0, 0): walls}, walkable={(0, 0): walkable})
     out = {"pdr-only": {"errors": pdr_errors(w)}, "fingerprint-only": {"errors": fp}}
+    if INITIAL_HEADING_STD[0] is not None:
+        out["pdr-aligned"] = {"errors": pdr_errors(w, initial_direction_deg(w) - w.steps[0].heading_deg)}
     for name in filters:
         out[name] = run_filter(name, w, fixes, site)
     return out
@@ -526,10 +546,14 @@ def main() -> int:
     ap.add_argument("--cold", action="store_true",
                     help="sessions open without an initial position: the first scan's fix starts them (cold start; "
                          "PDR alone still starts at the truth)")
+    ap.add_argument("--initial-heading-std", type=number(float, 0, above=True), default=None, metavar="DEG",
+                    help="sessions are told the walker's true direction at the start with this σ (initial.heading_std_deg); "
+                         "adds pdr-aligned, the PDR turned by the same knowledge")
     ap.add_argument("--out", type=Path, default=None, help="JSON with every scenario's parameters and figures")
     a = ap.parse_args()
     LAG[0] = a.lag
     COLD[0] = a.cold
+    INITIAL_HEADING_STD[0] = a.initial_heading_std
     filters = [f for f in a.filters.split(",") if f]
     ALGORITHM[0] = a.algorithm
     SURVEY_ROWS[0] = a.survey_rows
@@ -550,21 +574,22 @@ def main() -> int:
     for kind in kinds:
         t0 = time.perf_counter()
         results = [run_scenario(s, filters, kind, cov_scale) for s in scenarios]
-        rows = table(results, ["pdr-only", "fingerprint-only", *filters])
+        rows = table(results, [*baselines(), *filters])
         what = f"{a.algorithm} model" if kind == "knn" else kind  # ("knn": the model's fixes, of --algorithm)
         title = (f"{a.split} scenarios {a.first}-{a.first + a.n - 1}"
                  f"{f' ({len(scenarios)} with a landmark snap)' if a.with_snap else ''}, {what} fixes"
                  f"{f', the compass {a.compass_off:g}° off at the start' if a.compass_off is not None else ''}"
                  f"{f', plan (corridor {a.corridor_m:g} m)' if a.plan else ''}"
                  f"{', survey scans as rows' if a.survey_rows == 'scans' else ''}"
-                 f"{', cold start' if a.cold else ''} "
+                 f"{', cold start' if a.cold else ''}"
+                 f"{f', initial heading told (σ {a.initial_heading_std:g}°)' if a.initial_heading_std else ''} "
                  f"({time.perf_counter() - t0:.0f} s)")
         print(markdown(rows, title))
         print()
         report[kind] = rows
         report[f"{kind}_per_scenario_mean"] = {m: [float(np.mean(r[m]["errors"])) if len(r[m]["errors"]) else None
                                                    for r in results]
-                                               for m in ["pdr-only", "fingerprint-only", *filters]}
+                                               for m in [*baselines(), *filters]}
         biases = {f: [round(r[f]["bias_deg"], 1) for r in results if r[f].get("bias_deg") is not None]
                   for f in filters}
         report[f"{kind}_final_bias_deg"] = {f: b for f, b in biases.items() if b}

@@ -342,6 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--smoothed", action="store_true",
                    help="also score each session's smoothed track (GET .../track?smoothed=true; "
                         "a pf session's also with smoother=particles)")
+    p.add_argument("--initial-heading-std", type=number(float, 0, above=True), default=None, metavar="DEG",
+                   help="open sessions with each walk's true start direction and this sigma (initial.heading_std_deg: "
+                        "a phone that knows which way it starts); adds pdr-aligned, the PDR turned by the same knowledge")
     p.add_argument("--url", help="use this server instead of starting one (then give the keys)")
     p.add_argument("--admin-key", default=_env("LOCALIZER_ADMIN_KEY", "LOCALIZER_API_KEY"),
                    help="with --url (default: env LOCALIZER_ADMIN_KEY, else LOCALIZER_API_KEY)")

@@ -29,7 +29,7 @@ import json
 import math
 import secrets
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -348,16 +348,37 @@ async def fingerprint_only(device: LocalizerClient, site_id, p: Prepared) -> lis
 PARTICLE_FILTERS = ("pf", "pf-xy")
 
 
+def initial_direction_deg(waypoints: np.ndarray, min_m: float = 2.0) -> float:
+    """The walk's true direction at its start: from the first waypoint to the first one at least
+    ``min_m`` away (the last if none is; degrees clockwise from +y)."""
+    d = waypoints[1:, 1:3] - waypoints[0, 1:3]
+    far = np.flatnonzero(np.hypot(d[:, 0], d[:, 1]) >= min_m)
+    dx, dy = d[far[0] if len(far) else -1]
+    return math.degrees(math.atan2(dx, dy))
+
+
+def first_step_turn_deg(w: Walk, steps) -> float:
+    """How far the walk's true start direction is from its first step's reported heading (what a phone
+    told its start direction learns of its own heading bias; 0 without a step)."""
+    first = [s for s in steps if s.t > w.t_start]
+    return initial_direction_deg(w.waypoints) - first[0].heading_deg if first else 0.0
+
+
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
                         interval_s: float, smoothed: bool = False, seed_salt: int | None = None,
-                        filter_params: dict[str, float] | None = None, scans: bool = True) -> dict:
-    """Replay one walk through a session (``scans`` False: steps only, no fix reaches it)."""
+                        filter_params: dict[str, float] | None = None, scans: bool = True,
+                        heading_std_deg: float | None = None) -> dict:
+    """Replay one walk through a session (``scans`` False: steps only, no fix reaches it). The
+    session opens with the phone's own first heading (its compass: it tells the server nothing), or
+    with ``heading_std_deg`` the walk's true start direction and that σ (``initial.heading_std_deg``)."""
     w = p.walk
     init = None
     if initial:
         init = {"x": float(w.waypoints[0, 1]), "y": float(w.waypoints[0, 2]), "floor": 0}
         first = [s for s in steps if s.t > w.t_start]
-        if first:
+        if heading_std_deg is not None:
+            init |= {"heading_deg": round(initial_direction_deg(w.waypoints), 2), "heading_std_deg": heading_std_deg}
+        elif first:
             init["heading_deg"] = round(first[0].heading_deg, 2)
     seed = None if seed_salt is None else zlib.crc32(f"{w.name}|{seed_salt}".encode())
     session = await device.open_session(site_id, flt, init, seed=seed, filter_params=filter_params)
@@ -423,6 +444,9 @@ class Options:
     seed_salt: int | None = None
     #: tracker parameters per filter name (the ``filter_params`` extension), e.g. {"pf": {"q": 0.04}}
     filter_params: dict[str, dict[str, float]] | None = None
+    #: sessions are told each walk's true start direction with this σ (degrees; ``initial.heading_std_deg``),
+    #: and ``pdr-aligned`` scores the PDR turned by the same knowledge (None: neither)
+    initial_heading_std: float | None = None
 
 
 def walks_with_a_span(files: list[Path], role: str, progress=print) -> list[Walk]:
@@ -500,6 +524,10 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
             refused: dict[str, list[int]] = {}  # method: [fixes the gate refused, scans sent]
             async with sem:
                 methods["pdr-only"] = errors_against(w, dead_reckon(steps, w.waypoints[0, 1:], w.t_start)[1:])
+                if opt.initial_heading_std is not None:
+                    turn = first_step_turn_deg(w, steps)
+                    turned = [replace(s, heading_deg=s.heading_deg + turn) for s in steps]
+                    methods["pdr-aligned"] = errors_against(w, dead_reckon(turned, w.waypoints[0, 1:], w.t_start)[1:])
                 methods["fingerprint-only"] = await fingerprint_only(device, fmap["site_id"], p)
                 variants = [(f, True, v) for v in opt.plans for f in opt.filters] if opt.initial in ("yes", "both") else []
                 variants += [(f, False, v) for v in opt.plans for f in opt.filters] if opt.initial in ("no", "both") else []
@@ -510,7 +538,8 @@ async def run_msft(url: str, admin_key: str, device_key: str, data_dir: Path, ma
                     try:
                         res = await track_session(device, plan_sites[plan], p, steps, flt, init, opt.interval_s,
                                                   opt.smoothed, opt.seed_salt,
-                                                  (opt.filter_params or {}).get(flt), opt.session_scans)
+                                                  (opt.filter_params or {}).get(flt), opt.session_scans,
+                                                  opt.initial_heading_std)
                     except ApiError as exc:
                         if exc.status in (404, 405) and "sessions" in str(exc):
                             sessions_ok = False
@@ -645,7 +674,8 @@ def main(a) -> int:
                   plans=tuple(x for x in getattr(a, "plan", "none").split(",") if x),
                   plan_margin_m=float(getattr(a, "plan_margin", 0.0)), smoothed=bool(getattr(a, "smoothed", False)),
                   seed_salt=getattr(a, "seed_salt", None),
-                  filter_params=filter_params_arg(getattr(a, "filter_params", None)))
+                  filter_params=filter_params_arg(getattr(a, "filter_params", None)),
+                  initial_heading_std=getattr(a, "initial_heading_std", None))
     for variant in opt.plans:
         if variant not in PLANS:
             raise CliError(f"unknown --plan {variant!r} (comma list of {', '.join(PLANS)})", EXIT_USAGE)

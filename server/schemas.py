@@ -296,7 +296,22 @@ class InitialIn(Strict):
     y: Metres = Field(description=Y_DOC)
     floor: Level
     building: Building = 0
-    heading_deg: Degrees | None = None
+    heading_deg: Degrees | None = Field(
+        None, description="The walker's direction at the start (degrees clockwise from +y, as a step's). Alone it "
+        "is taken as the phone's own reading (the compass its steps use), which tells the tracker nothing it does "
+        "not have, and is not used; with `heading_std_deg` see there.")
+    heading_std_deg: Annotated[float, Field(gt=0, le=180, allow_inf_nan=False)] | None = Field(
+        None, description="Extension. σ (degrees) of `heading_deg` known independently of the phone's compass "
+        "(a known entrance, a user's tap): a self-calibrating tracker (`ekf`, `ukf`, `skpf`, `pf`) then takes "
+        "the difference between `heading_deg` and its first step's heading as an observation of the phone's "
+        "heading bias (variance this σ² plus that step's `heading_std_deg`²). The seed forms, `kf` and `fkf` "
+        "carry no bias and ignore it. Needs `heading_deg`.")
+
+    @model_validator(mode="after")
+    def _heading_std_needs_heading(self) -> InitialIn:
+        if self.heading_std_deg is not None and self.heading_deg is None:
+            raise ValueError("initial.heading_std_deg needs initial.heading_deg")
+        return self
     covariance: Annotated[Cov2, AfterValidator(_positive_definite)] | None = Field(
         None, description=COV_DOC + " Symmetric, positive definite; default: the tracker's own.")
 

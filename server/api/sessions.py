@@ -20,7 +20,7 @@ from server.auth import Principal
 from server.db import Database
 from server.domain import BatchAnswer, GateMarks, SessionInfo
 from server.errors import InvalidField
-from server.estimation.types import Estimate, Scan, ScanNote, Step
+from server.estimation.types import Estimate, InitialHeading, Scan, ScanNote, Step
 from server.schemas import (
     BatchIn,
     BatchResult,
@@ -41,7 +41,10 @@ _NOT_YOURS: dict[int | str, dict[str, Any]] = {404: {"description": "No such ses
              responses={404: {"description": "Unknown site."}, 422: {"description": "Bad filter, model or initial."}})
 def open_session(body: SessionIn, sessions: Sessions, principal: Device) -> SessionOut:
     init = body.initial
-    initial = None if init is None else InitialPosition(init.x, init.y, init.floor, init.covariance, init.building)
+    initial = None if init is None else InitialPosition(
+        init.x, init.y, init.floor, init.covariance, init.building,
+        None if init.heading_deg is None or init.heading_std_deg is None
+        else InitialHeading(init.heading_deg, init.heading_std_deg))
     return session_out(sessions.open(principal, body.site_id, body.filter, body.model_id, initial, body.seed,
                                     body.filter_params))
 

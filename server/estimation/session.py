@@ -48,6 +48,7 @@ from server.estimation.types import (
     Estimate,
     Fix,
     FullState,
+    InitialHeading,
     LateInput,
     LateInputs,
     NoFix,
@@ -135,6 +136,9 @@ class SessionEstimator:
         #: what the tracker's covariance leaves out: the walk's fixes' shared error, a cold start's
         #: narrowed inputs (shared_error.py); added to every estimate's covariance
         self.shared_error = SharedFixError()
+        #: the walking direction and its σ a session's ``initial`` gave (degrees, site frame), until its
+        #: first step turns them into an observation of a self-calibrating tracker's heading bias
+        self.initial_heading: InitialHeading | None = None
         #: the site's walls the tracker was last given (not stored: they come from the site)
         self._plan_walls: list | None = None
         #: diagnostics for offline evaluation (not stored): when a list, every gated fix
@@ -150,8 +154,11 @@ class SessionEstimator:
         return self.tracker is not None
 
     def start(self, mean, cov, floor: int, walls, t: float | None, source: str, building: int = 0,
-              walkable: Walkable | None = None) -> Estimate:
-        """A new tracker at (mean, cov) on that floor, with its walls and walkable area; its first estimate."""
+              walkable: Walkable | None = None, heading: InitialHeading | None = None) -> Estimate:
+        """A new tracker at (mean, cov) on that floor, with its walls and walkable area; its first
+        estimate. ``heading``: the walker's direction there, known independently of the phone's
+        compass, kept for the first step (``step``)."""
+        self.initial_heading = heading
         cov = np.eye(2) * DEFAULT_INITIAL_VAR_M2 if cov is None else fix_cov(cov)
         self.tracker = make_tracker(self.filter, mean, cov, walls=walls, seed=self.seed, **self.tracker_params)
         self.tracker.set_walkable(walkable)
@@ -311,6 +318,10 @@ class SessionEstimator:
         self.advance(step.t)
         if self.tracker is None:
             return None
+        if self.initial_heading is not None:
+            if isinstance(self.tracker, selfcal.Calibrating):  # (the seed forms carry no bias to tell)
+                self.tracker.observe_heading(step, self.initial_heading.heading_deg, self.initial_heading.std_deg)
+            self.initial_heading = None
         considered = self._considered()
         before = None if considered is None else considered.state_mean
         self.tracker.predict(step)
@@ -457,6 +468,7 @@ class SessionEstimator:
             "gated_in_a_row": self.gated_in_a_row,
             "fix_noise": self.fix_noise.to_list(),
             "shared_error": self.shared_error.to_dict(),
+            **({} if (h := self.initial_heading) is None else {"initial_heading": [h.heading_deg, h.std_deg]}),
         }
 
     @classmethod
@@ -472,6 +484,8 @@ class SessionEstimator:
         obj.gated_in_a_row = d.get("gated_in_a_row", 0)  # absent from states stored before the gate
         obj.fix_noise = FixNoiseScale.from_list(d.get("fix_noise"))  # absent from older states
         obj.shared_error = SharedFixError.from_dict(d.get("shared_error"))  # absent from older states
+        heading = d.get("initial_heading")  # (only until the first step)
+        obj.initial_heading = None if heading is None else InitialHeading(*map(float, heading))
         return obj
 
 

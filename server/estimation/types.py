@@ -38,6 +38,15 @@ class Step:
 
 
 @dataclass(frozen=True)
+class InitialHeading:
+    """The walker's direction at a session's start (degrees, site frame) as a phone knows it
+    independently of its own compass (a known entrance, a user's tap), and that knowledge's σ."""
+
+    heading_deg: float
+    std_deg: float
+
+
+@dataclass(frozen=True)
 class Scan:
     """One RSS scan: transmitter id → dBm."""
 

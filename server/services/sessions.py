@@ -32,7 +32,18 @@ from server.estimation.session import SessionEstimator
 from server.estimation.tracking import find_merge_target, merge_points
 from server.estimation.tracking.smoother import smooth_track
 from server.estimation.tracking.tuning import BadParam, check_params
-from server.estimation.types import Area, CrowdCandidate, Estimate, Fix, LateInputs, NoFix, Scan, SiteMap, Step
+from server.estimation.types import (
+    Area,
+    CrowdCandidate,
+    Estimate,
+    Fix,
+    InitialHeading,
+    LateInputs,
+    NoFix,
+    Scan,
+    SiteMap,
+    Step,
+)
 from server.services.lru import Lru
 from server.services.positioning import Positioning, ServingModel
 from server.services.site_context import SiteContexts
@@ -57,13 +68,16 @@ Smoother = Literal["rts", "particles"]
 
 @dataclass(frozen=True)
 class InitialPosition:
-    """Where a phone says a session starts; ``covariance`` in m² (None: the default)."""
+    """Where a phone says a session starts; ``covariance`` in m² (None: the default); ``heading``
+    the walker's direction there when the phone knows it independently of its compass (None: not
+    known so)."""
 
     x: float
     y: float
     floor: int
     covariance: tuple[tuple[float, float], tuple[float, float]] | None = None
     building: int = 0
+    heading: InitialHeading | None = None
 
 
 @dataclass(frozen=True)
@@ -129,7 +143,7 @@ class SessionService:
                                            f"{floor_names(floors)}"}])
                 walls = site_store.floor_walls(s, site_id, initial.floor, initial.building)
                 estimates.append(est.start([initial.x, initial.y], initial.covariance, initial.floor, walls, None, "init",
-                                           initial.building))
+                                           initial.building, heading=initial.heading))
             state = est.to_dict()
             return store.add_session(s, session_id, site_id, principal.key_hash, filter, model_id, state, estimates,
                                      [est.full_state] if estimates else [], opening_state=state if replays(filter) else None)

@@ -657,6 +657,21 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if self._reweight(loglik) and floor is not None:
             self._keep_spread(*floor)
 
+    def _observe_bias(self, innovation: float, var: float, x=None, P=None) -> None:
+        """An observation of b (``Calibrating.observe_heading``) as the cloud's form of a Kalman
+        update: every particle's b moved and drawn in as the update moves the b column's weighted
+        mean m and variance v (bᵢ ← m + K·innovation + √(1 − K)·(bᵢ − m), K = v / (v + ``var``)),
+        the other columns as they are. A reweighing would leave almost no particle where a phone
+        45° off its compass says its bias is."""
+        b = self.particles[:, 2]
+        m = float(self.weights @ b)
+        v = float(self.weights @ (b - m) ** 2)
+        k = v / (v + var) if v + var > 0 else 0.0
+        self.particles[:, 2] = m + k * innovation + math.sqrt(1.0 - k) * (b - m)
+        moved = np.zeros(self.particles.shape[1], bool)
+        moved[2] = True
+        self.particles = self._round(self.particles, refit=moved)
+
     def update(self, fix: Fix) -> None:
         floor = self._kalman_floor(np.eye(2, 4), fix_cov(fix.covariance), np.asarray(fix.mean, float) - self.mean)
         if self._reweight(self._fix_loglik(fix)) and floor is not None:

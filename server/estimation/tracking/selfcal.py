@@ -269,11 +269,27 @@ class Calibrating:
         r = wrap_deg(offset - math.degrees(x[2]), 90.0)
         if abs(r) > p["grid_gate_deg"]:
             return
-        innovation, var = math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2
+        self._observe_bias(math.radians(r), math.radians(p["grid_sigma_deg"]) ** 2, x, P)
+
+    def _observe_bias(self, innovation: float, var: float, x: Vec4 | None = None, P: Mat4 | None = None) -> None:
+        """A scalar Kalman update of the state by an observation of b (``innovation`` z − b̂ in
+        radians, noise variance ``var``); ``x``, ``P``: the state as ``_floats`` gives it, if at hand."""
+        if x is None or P is None:
+            x, P = self._floats()
         if len(x) == N_AUG:
             self._set_floats(*observe_bias(x, P, innovation, var))
         else:
             self._set_state(*observe_bias_array(self.state_mean, self.state_covariance, innovation, var))
+
+    def observe_heading(self, step: Step, heading_deg: float, std_deg: float) -> None:
+        """The walker's true direction at ``step`` is ``heading_deg`` (σ ``std_deg``, beside the
+        step's own white heading noise): an observation of b = heading_deg − the step's reported
+        heading. A session's ``initial`` heading with its own σ comes in here at the first step: a
+        phone that knows which way it walks at its start, independently of its compass, tells the
+        tracker its heading bias, which the fixes otherwise have to teach it."""
+        z = math.radians(heading_deg - step.heading_deg)
+        var = math.radians(std_deg) ** 2 + math.radians(step.heading_std_deg) ** 2
+        self._observe_bias(math.remainder(z - float(self.state_mean[2]), 2 * math.pi), var)
 
     def _floats(self) -> tuple[Vec4, Mat4]:
         """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""
