@@ -15,7 +15,7 @@ from server.estimation.replay import RecordedBatch, RecordingFixes, replays, smo
 from server.estimation.session import SessionEstimator
 from server.estimation.tracking import make_tracker
 from server.estimation.tracking.particle_smoother import PathSmoother, no_wider
-from server.estimation.types import Area, Fix, NoFix, Scan, SiteMap, Step
+from server.estimation.types import Area, Fix, InitialHeading, NoFix, Scan, SiteMap, Step
 
 
 def test_lineage_follows_a_resampling_and_a_reset():
@@ -78,12 +78,14 @@ class _Fixes:
         return Fix(x, y, 0, np.eye(2) * 1.44, shared_share=None)
 
 
-def _live(filter: str = "pf", batch: int = 10, start: bool = True, grids: dict | None = None):
-    """The walk as the server runs it: opened with a start (``start``; else on its first fix), each
-    batch from the stored (JSON) state; the site's survey grid ``grids`` (none by default)."""
+def _live(filter: str = "pf", batch: int = 10, start: bool = True, grids: dict | None = None,
+          heading: InitialHeading | None = None):
+    """The walk as the server runs it: opened with a start (``start``; else on its first fix; with
+    ``heading``, its direction there), each batch from the stored (JSON) state; the site's survey
+    grid ``grids`` (none by default)."""
     steps, scans, fixes, truth = _walk()
     est = SessionEstimator(filter, seed=11)
-    track = [est.start([0.0, 0.0], None, 0, [], None, "init")] if start else []
+    track = [est.start([0.0, 0.0], None, 0, [], None, "init", heading=heading)] if start else []
     opening = json.loads(json.dumps(est.to_dict()))
     source, site, recorded = _Fixes(fixes), SiteMap(grids=dict(grids or {})), []
     for k in range(0, len(steps), batch):
@@ -113,6 +115,15 @@ def test_a_replayed_pf_session_reproduces_its_track_and_smooths_it():
     assert smooth_err < 0.9 * live_err
     for a, b in zip(track, smoothed, strict=True):  # never wider than live
         assert np.linalg.eigvalsh(np.array(a.covariance) - np.array(b.covariance)).min() > -1e-6
+
+
+def test_a_session_told_its_start_direction_is_replayed_with_it():
+    """The start direction waits in the opening state, so the replay takes it at the same step."""
+    opening, batches, site, track, _ = _live(heading=InitialHeading(90.0, 5.0))
+    assert opening["initial_heading"] == [90.0, 5.0]
+    assert smoothed_by_replay(opening, batches, site, track) is not None  # (None: the replay drew otherwise)
+    _, _, _, untold, _ = _live()
+    assert [(e.x, e.y) for e in track] != [(e.x, e.y) for e in untold]
 
 
 def test_a_session_started_on_its_first_fix_is_replayed_too():
