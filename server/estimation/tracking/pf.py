@@ -657,7 +657,8 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         if self._reweight(loglik) and floor is not None:
             self._keep_spread(*floor)
 
-    def _observe_bias(self, innovation: float, var: float, x=None, P=None) -> None:
+    def _observe_bias(self, innovation: float, var: float, x: selfcal.Vec4 | None = None,
+                      P: selfcal.Mat4 | None = None) -> None:
         """An observation of b (``Calibrating.observe_heading``) as the cloud's form of a Kalman
         update: every particle's b moved and drawn in as the update moves the b column's weighted
         mean m and variance v (bᵢ ← m + K·innovation + √(1 − K)·(bᵢ − m), K = v / (v + ``var``)),
