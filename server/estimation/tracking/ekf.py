@@ -199,13 +199,13 @@ class EKFTracker(_EKFUpdates, selfcal.FilterpyState, Tracker):
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
         walk_offset: float = WALK_OFFSET,
-        **grid: float,
+        **site: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q), "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
                        **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
                        **selfcal.finite_nonnegative(walk_offset=walk_offset),
-                       **selfcal.grid_params(**grid)}
+                       **selfcal.site_params(**site)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._offset_prior: np.ndarray | None = None
         self.ekf = ExtendedKalmanFilter(dim_x=4, dim_z=2)

@@ -56,6 +56,12 @@ GRID_GATE_DEG = 20.0
 GRID_STEPS = 8
 #: a straight run: consecutive steps whose reported heading stays within this of the run's mean (degrees)
 STRAIGHT_DEG = 10.0
+#: where the fingerprint model looks for a fix (``Calibrating.search_region``): within this many of the
+#: tracker's largest position σ plus this margin (m) of its estimate; 0 σ = anywhere. Chosen on the
+#: stress/tune splits' draws 100–111 and MSFT folds 0–1 among (3, 10) and (3, 20) (docs/tracking-design.md,
+#: "Where the fingerprint model looks")
+SEARCH_SIGMAS = 3.0
+SEARCH_MARGIN_M = 10.0
 
 
 def finite_nonnegative(**values: float) -> dict[str, float]:
@@ -81,6 +87,16 @@ def grid_params(grid_sigma_deg: float = GRID_SIGMA_DEG, grid_gate_deg: float = G
     out = finite_nonnegative(grid_sigma_deg=grid_sigma_deg, grid_gate_deg=grid_gate_deg, grid_steps=grid_steps)
     out["grid_steps"] = float(max(1, round(out["grid_steps"])))
     return out
+
+
+def search_params(search_sigmas: float = SEARCH_SIGMAS, search_margin_m: float = SEARCH_MARGIN_M) -> dict[str, float]:
+    return finite_nonnegative(search_sigmas=search_sigmas, search_margin_m=search_margin_m)
+
+
+def site_params(search_sigmas: float = SEARCH_SIGMAS, search_margin_m: float = SEARCH_MARGIN_M,
+                **grid: float) -> dict[str, float]:
+    """``grid_params`` and ``search_params`` together: what a Gaussian filter takes from its site."""
+    return {**grid_params(**grid), **search_params(search_sigmas, search_margin_m)}
 
 
 Angle = TypeVar("Angle", float, np.ndarray)
@@ -290,6 +306,21 @@ class Calibrating:
         z = math.radians(heading_deg - step.heading_deg)
         var = math.radians(std_deg) ** 2 + math.radians(step.heading_std_deg) ** 2
         self._observe_bias(math.remainder(z - float(self.state_mean[2]), 2 * math.pi), var)
+
+    def search_region(self) -> tuple[float, float, float, float] | None:
+        """The fingerprint model looks within ``search_sigmas`` × the largest position σ +
+        ``search_margin_m`` of the estimate (None: anywhere, ``search_sigmas`` 0). A scan that
+        resembles a far part of the building gives the best match near the walker instead of a fix
+        tens of metres off, which the gate would refuse or the fix-noise scale learn to distrust
+        (with it every other fix); the σ term keeps an uncertain tracker's fixes free to pull it
+        back, and the gate's widening after refused fixes widens the search with it."""
+        k = self.params["search_sigmas"]
+        if k <= 0:
+            return None
+        sd = math.sqrt(max(float(np.linalg.eigvalsh(self.state_covariance[:2, :2])[-1]), 0.0))
+        half = k * sd + self.params["search_margin_m"]
+        x, y = (float(v) for v in self.state_mean[:2])
+        return (x - half, y - half, x + half, y + half)
 
     def _floats(self) -> tuple[Vec4, Mat4]:
         """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""

@@ -227,11 +227,11 @@ class SKPFTracker(selfcal.Calibrating, Tracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
-        **grid: float,
+        **site: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {"q": float(q), **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std,
-                                                                   scale_walk), **selfcal.grid_params(**grid)}
+                                                                   scale_walk), **selfcal.site_params(**site)}
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._q_diag = [float(v) for v in np.diag(self._Q)]
         self.x, self.P = selfcal.initial_state(as_mean(initial_mean), as_cov(initial_cov), self.params)

@@ -162,14 +162,14 @@ class UKFTracker(_UKFUpdates, selfcal.FilterpyState, Tracker):
         bias_walk_deg: float = selfcal.BIAS_WALK_DEG,
         scale0_std: float = selfcal.SCALE0_STD,
         scale_walk: float = selfcal.SCALE_WALK,
-        **grid: float,
+        **site: float,
     ):
         super().__init__(initial_mean, initial_cov, walls=walls, seed=seed)
         self.params = {
             "q": float(q), "alpha": float(alpha), "beta": float(beta), "kappa": float(kappa),
             "max_range_m": float(max_range_m), "wall_margin_m": float(wall_margin_m),
             **selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk),
-            **selfcal.grid_params(**grid),
+            **selfcal.site_params(**site),
         }
         self._Q = selfcal.process_noise(self.params["q"], self.params)
         self._aug_points = MerweScaledSigmaPoints(6, alpha=alpha, beta=beta, kappa=kappa)
