@@ -14,6 +14,7 @@ from sqlalchemy import create_engine, text
 
 from server.api.deps import session_service
 from server.errors import Invalid
+from server.estimation.tracking.selfcal import SEARCH_MARGIN_M
 from server.estimation.types import Fix
 from server.services.sessions import SessionService
 from tests.conftest import LiveServer, make_settings
@@ -140,10 +141,15 @@ def test_every_filter_runs_steps_and_scans(device, site, positioning, name):
     assert r["applied_steps"] == 4 and r["applied_scans"] == 1 and r["estimate"]["source"] == "step"
     track = device.get(f"/api/v1/sessions/{sid}/track").json()
     assert [e["source"] for e in track] == ["init", "step", "step", "step", "scan", "step"]
+    call = positioning.calls[-1]
     if name == "fkf":  # fkf's search box restricts the model's candidates
-        assert positioning.calls[-1]["near"] is not None and positioning.calls[-1]["radius_m"] == pytest.approx(9.0)
-    else:
-        assert positioning.calls[-1]["near"] is None
+        assert call["near"] is not None and call["radius_m"] == pytest.approx(9.0)
+    elif name in ("ekf", "ukf", "skpf"):  # within 3σ + 10 m of the estimate before the scan
+        before = track[3]
+        assert call["near"] == pytest.approx((before["x"], before["y"]))
+        assert call["radius_m"] > SEARCH_MARGIN_M
+    else:  # the seed forms, and a pf on a floor with a plan (this one has a wall)
+        assert call["near"] is None
 
 
 def test_scans_pull_the_estimate_towards_the_fix(device, site, positioning):
