@@ -90,6 +90,7 @@ def grid_params(grid_sigma_deg: float = GRID_SIGMA_DEG, grid_gate_deg: float = G
 
 
 def search_params(search_sigmas: float = SEARCH_SIGMAS, search_margin_m: float = SEARCH_MARGIN_M) -> dict[str, float]:
+    """Where the fingerprint model may look (``Calibrating.search_region``), checked finite and ≥ 0."""
     return finite_nonnegative(search_sigmas=search_sigmas, search_margin_m=search_margin_m)
 
 
