@@ -104,3 +104,15 @@ def test_a_scan_like_a_far_corner_gives_the_best_match_near_the_walker(name, mod
     near, far = _far_scan(name, model, search_sigmas=0.0)
     assert near is None and math.hypot(far.x - 40.0, far.y - 20.0) < 6.0
     assert math.hypot(fix.x - 0.7, fix.y) < math.hypot(far.x - 0.7, far.y) - 20.0
+
+
+@pytest.mark.parametrize("name", CALIBRATING)
+def test_a_session_stored_before_the_search_rule_searches_from_its_next_scan(name):
+    """Its stored parameters lack the two names: they load with the defaults."""
+    state = _started(name).to_dict()
+    for key in ("search_sigmas", "search_margin_m"):
+        del state["tracker"]["params"][key]
+    restored = SessionEstimator.from_dict(state)
+    area = restored.search_area()
+    assert area is not None and area.radius_m > SEARCH_MARGIN_M
+    assert restored.tracker.params["search_sigmas"] == SEARCH_SIGMAS
