@@ -135,6 +135,17 @@ def test_spatial_restriction_for_tracking(site, survey):
     assert near.floor == 0
 
 
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_every_algorithm_keeps_a_tracking_sessions_fix_inside_its_search_circle(name, site, fitted):
+    """A self-calibrating session asks every fix with ``near=(x, y)`` (no floor) and a radius: the
+    answer stays inside however much the scan resembles somewhere else."""
+    scan = site.scan(0, 0, 0, None, np.random.default_rng(4), noise_db=1.0)
+    fix = fitted[name].locate(scan, near=(12.0, 9.0), radius_m=4.0)
+    assert fix.candidates
+    assert all(np.hypot(c.x - 12, c.y - 9) <= 4.0 + 1e-9 for c in fix.candidates)
+    assert np.hypot(fix.x - 12, fix.y - 9) <= 4.0 + 1e-9
+
+
 def test_covariance_reflects_ambiguity(site, survey):
     model = KDEModel().fit(survey)
     rng = np.random.default_rng(6)

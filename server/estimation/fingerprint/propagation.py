@@ -41,7 +41,9 @@ class PropagationModel(FingerprintModel):
     """transmitters: API Transmitter dicts ``{id, floor?, x?, y?, tx_power_dbm?,
     path_loss_exponent?}`` (``building?`` accepted too). method: "multilateration" or
     "centroid". floor_height_m: vertical distance per floor. max_anchors: strongest
-    transmitters used per scan."""
+    transmitters used per scan. ``near``/``radius_m`` (a tracking session's search circle) restrict
+    the reference points a fix is reduced to; a model without reference points answers the
+    multilateration unrestricted."""
 
     name = "propagation"
     needs_fingerprints = False
@@ -182,8 +184,9 @@ class PropagationModel(FingerprintModel):
             g = clf.predict(self._floor_design(self.encoder_.transform(R), self._headings(heading_deg, n)))
             groups = [(int(self.group_building_[k]), int(self.group_floor_[k])) for k in g]
         est = [self.estimate(R[i], groups[i]) for i in range(n)]
+        near_mask = self._near_mask(near, radius_m, n)  # (a tracking session's search circle)
         parts = []
-        for e in est:
+        for i, e in enumerate(est):
             if e is None:  # nothing usable heard: centre of everything known, huge covariance
                 known = self.tx_pos_[~np.isnan(self.tx_pos_[:, 0])]
                 c = known.mean(0) if len(known) else np.zeros(2)
@@ -193,8 +196,10 @@ class PropagationModel(FingerprintModel):
             if len(self.rp_xy_) and len(g):
                 sigma2 = max(float(np.trace(cov)) / 2.0, self.cov_floor_m_**2)
                 logs = -((self.rp_xy_ - xy) ** 2).sum(-1) / (2.0 * sigma2)
-                logs = np.where(self.rp_group_ == g[0], logs, -np.inf)[None, :]
-                parts.append(self._reduce(logs))
+                logs = np.where(self.rp_group_ == g[0], logs, -np.inf)
+                if near_mask is not None and np.isfinite(restricted := np.where(near_mask[i], logs, -np.inf)).any():
+                    logs = restricted  # the reference points inside the circle, unless it holds none of the floor's
+                parts.append(self._reduce(logs[None, :]))
             else:
                 cov = cov + np.eye(2) * self.cov_floor_m_**2
                 c = min(self.n_candidates, len(self.rp_xy_)) or self.n_candidates
