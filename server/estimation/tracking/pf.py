@@ -559,7 +559,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
         **pf_params,
     ) -> None:
         """The seed form's configuration (``pf_params``) plus the calibration's random walks,
-        the fixes' shared error and the building's grid."""
+        the fixes' shared error, the building's grid and where the fingerprint model may look."""
         self._cal = selfcal.calibration_params(bias0_std_deg, bias_walk_deg, scale0_std, scale_walk)
         if not 0.0 <= fix_bias_share < 1.0:
             raise ValueError("fix_bias_share must be at least 0 and below 1")
