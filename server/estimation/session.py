@@ -199,19 +199,13 @@ class SessionEstimator:
         return None
 
     def search_area(self) -> Area | None:
-        """Where the tracker allows the fingerprint model to look (None: anywhere). Not before
-        the tracker is localised to within its box (its largest position std at most the box's
-        half-width): the box around a wrong cold start would keep every later fix near it."""
-        if self.tracker is None:
-            return None
-        box = self.tracker.search_region()
+        """Where the tracker allows the fingerprint model to look (None: anywhere): the circle of
+        its search box's half-width about the box's centre (``Tracker.search_region``)."""
+        box = None if self.tracker is None else self.tracker.search_region()
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        radius = max(x1 - x0, y1 - y0) / 2
-        if np.sqrt(np.linalg.eigvalsh(self.tracker.covariance)[-1]) > radius:
-            return None
-        return Area((x0 + x1) / 2, (y0 + y1) / 2, radius)
+        return Area((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2)
 
     # -- a whole batch ----------------------------------------------------------------
     def apply_batch(

@@ -50,8 +50,8 @@ def test_the_gates_widening_widens_the_search_with_it(name):
 @pytest.mark.parametrize("name", CALIBRATING)
 def test_search_sigmas_zero_lets_the_model_look_anywhere(name):
     assert _started(name, search_sigmas=0.0).search_area() is None
-    area = _started(name, search_sigmas=2.0, search_margin_m=0.0).search_area()
-    assert area is not None and area.radius_m == pytest.approx(4.0, rel=0.1)
+    area = _started(name, search_sigmas=0.5, search_margin_m=0.0).search_area()
+    assert area is not None and area.radius_m == pytest.approx(1.0, rel=0.1)  # even inside one σ
 
 
 @pytest.mark.parametrize("name", ["kf", "ekf-xy", "ukf-xy", "pf-xy", "skpf-xy"])
