@@ -276,7 +276,7 @@ class ModelFixes:
             raise NoFix("the scan heard nothing")
         f = self.model.locate(scan.rss, near=None if near is None else (near.x, near.y),
                               radius_m=None if near is None else near.radius_m)
-        return Fix(f.x, f.y, f.floor, np.asarray(f.covariance) * self.cov_scale, shared_share=f.shared_share)
+        return replace(f, covariance=np.asarray(f.covariance) * self.cov_scale)  # (as the server serves it)
 
 
 class GaussianFixes:
