@@ -37,6 +37,14 @@ FLOOR_CLASSIFIER_ROWS = 4000
 FLOOR_CLASSIFIERS = (None, "svc", "trees", "knn", "knn-svc")
 
 
+def restricted(logs: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(nq, n_rp) log-scores with the reference points outside ``mask`` at −inf, row by row; a row
+    the mask would leave with nothing finite keeps all its scores (the restriction is ignored)."""
+    masked = np.where(mask, logs, -np.inf)
+    dead = np.asarray(~np.isfinite(masked).any(axis=1))
+    return np.where(dead[:, None], logs, masked)
+
+
 def stratified_rows(group: np.ndarray, cap: int, seed: int = 0) -> np.ndarray:
     """Sorted indices of at most ``cap`` rows, each group keeping its share of them (at
     least one row), drawn at random within it; every row when there are few enough."""
@@ -514,9 +522,7 @@ class FingerprintModel:
             m = None if mask is None else mask[sl]
             logs = self._log_scores(Q[sl], None if Hq is None else Hq[sl], m)
             if m is not None:
-                masked = np.where(m, logs, -np.inf)
-                dead = np.asarray(~np.isfinite(masked).any(axis=1))  # restriction left nothing: ignore it
-                logs = np.where(dead[:, None], logs, masked)
+                logs = restricted(logs, m)
             parts.append(self._reduce(logs))
         return _concat_predictions(parts)
 

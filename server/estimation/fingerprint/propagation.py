@@ -29,7 +29,7 @@ import numpy as np
 from server.estimation.radio import fit_path_loss, multilaterate, range_from_rss, weighted_centroid
 from server.estimation.types import Fix
 
-from .base import FingerprintModel, TrainingData, _concat_predictions
+from .base import FingerprintModel, TrainingData, _concat_predictions, restricted
 from .dataset import FingerprintSet, tx_kind
 from .posterior import Prediction
 
@@ -196,10 +196,10 @@ class PropagationModel(FingerprintModel):
             if len(self.rp_xy_) and len(g):
                 sigma2 = max(float(np.trace(cov)) / 2.0, self.cov_floor_m_**2)
                 logs = -((self.rp_xy_ - xy) ** 2).sum(-1) / (2.0 * sigma2)
-                logs = np.where(self.rp_group_ == g[0], logs, -np.inf)
-                if near_mask is not None and np.isfinite(restricted := np.where(near_mask[i], logs, -np.inf)).any():
-                    logs = restricted  # the reference points inside the circle, unless it holds none of the floor's
-                parts.append(self._reduce(logs[None, :]))
+                logs = np.where(self.rp_group_ == g[0], logs, -np.inf)[None, :]
+                if near_mask is not None:  # the circle's points, unless it holds none of the floor's
+                    logs = restricted(logs, near_mask[i : i + 1])
+                parts.append(self._reduce(logs))
             else:
                 cov = cov + np.eye(2) * self.cov_floor_m_**2
                 c = min(self.n_candidates, len(self.rp_xy_)) or self.n_candidates
