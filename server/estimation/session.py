@@ -199,13 +199,9 @@ class SessionEstimator:
         return None
 
     def search_area(self) -> Area | None:
-        """Where the tracker allows the fingerprint model to look (None: anywhere): the circle of
-        its search box's half-width about the box's centre (``Tracker.search_region``)."""
-        box = None if self.tracker is None else self.tracker.search_region()
-        if box is None:
-            return None
-        x0, y0, x1, y1 = box
-        return Area((x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0) / 2)
+        """Where the tracker allows the fingerprint model to look (None: anywhere;
+        ``Tracker.search_region``)."""
+        return None if self.tracker is None else self.tracker.search_region()
 
     # -- a whole batch ----------------------------------------------------------------
     def apply_batch(

@@ -5,7 +5,7 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from server.estimation.tracking import make_tracker
-from server.estimation.types import Fix, Step
+from server.estimation.types import Area, Fix, Step
 
 
 def fix(x, y, cov=None):
@@ -82,11 +82,12 @@ def test_fkf_process_noise_is_0225_per_step():
     np.testing.assert_allclose(t.covariance, (1 + 2 * 0.225) * np.eye(2), atol=1e-12)
 
 
-def test_fkf_search_region_is_9m_box_around_estimate():
+def test_fkf_search_region_is_within_9m_of_the_estimate():
     t = make_tracker("fkf", [3.0, -4.0], np.eye(2))
-    assert t.search_region() == (-6.0, -13.0, 12.0, 5.0)
+    assert t.search_region() == Area(3.0, -4.0, 9.0)
     t.predict(Step(0, 1.0, 90.0))
-    assert t.search_region() == pytest.approx((-5.0, -13.0, 13.0, 5.0))
+    area = t.search_region()
+    assert area is not None and (area.x, area.y, area.radius_m) == pytest.approx((4.0, -4.0, 9.0))
     assert make_tracker("kf", [0, 0], np.eye(2)).search_region() is None
 
 
@@ -135,8 +136,7 @@ def test_fkf_scale_fix_with_unit_fix_is_design_literal():
 def test_fkf_releases_the_box_after_a_lost_track_and_restores_it():
     # σ_fix = 1 m; a residual ≥ 2σ counts as large. lost_after = 3 consecutive large ones.
     t = make_tracker("fkf", [0, 0], np.eye(2) * 0.01, q=0.0)
-    box = t.search_region()
-    assert box == (-9.0, -9.0, 9.0, 9.0)
+    assert t.search_region() == Area(0.0, 0.0, 9.0)
     t.update(fix(8.0, 0.0))
     t.update(fix(8.0, 0.0))
     assert t.large_residuals == 2 and not t.lost and t.search_region() is not None
@@ -154,7 +154,7 @@ def test_fkf_releases_the_box_after_a_lost_track_and_restores_it():
     t.update(fix(x + 0.3, 0.0))  # a fix that agrees again: box back, around the estimate
     assert not t.lost
     region = t.search_region()
-    assert region is not None and region[2] - region[0] == pytest.approx(18.0)
+    assert region is not None and region.radius_m == 9.0 and region.x == pytest.approx(t.mean[0])
 
 
 def test_fkf_lost_after_zero_keeps_the_box():

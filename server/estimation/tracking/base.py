@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from server.estimation.types import Fix, Step
+from server.estimation.types import Area, Fix, Step
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
@@ -230,9 +230,9 @@ class Tracker(ABC):
         covariance for it (``shared_error``)."""
         return False
 
-    def search_region(self) -> tuple[float, float, float, float] | None:
-        """Box (xmin, ymin, xmax, ymax) the fingerprint model should restrict its
-        candidate reference points to, or None for no restriction."""
+    def search_region(self) -> Area | None:
+        """The circle the fingerprint model should restrict its candidate reference points to,
+        or None for no restriction."""
         return None
 
     # -- persistence --------------------------------------------------------------

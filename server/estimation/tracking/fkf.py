@@ -3,7 +3,7 @@
 A linear KF (F = H = I) with Q = 0.225 m²·I per step and R switched by the size of
 the residual ‖z − x⁻‖ of the fix being applied. DESIGN.md gives the rule in absolute
 units: < 1 m → 0.675, < 2 m → 1.125, otherwise 1.575 m² on the diagonal. Candidate
-reference points are restricted to a box of ±9 m around the last estimate:
+reference points are restricted to within 9 m of the last estimate (DESIGN's ±9 m box, as a circle):
 ``search_region()`` returns it for the fingerprint model.
 
 Scaling to the fix (``scale="fix"``, the default). The literal numbers assume fixes
@@ -39,7 +39,7 @@ import numpy as np
 
 from server.estimation.tracking.base import as_mean, fix_cov_entries, register
 from server.estimation.tracking.kf import _LinearKF
-from server.estimation.types import Fix, Step, step_displacement
+from server.estimation.types import Area, Fix, Step, step_displacement
 
 SCALES = ("fix", "none")
 
@@ -122,15 +122,16 @@ class FuzzyKFTracker(_LinearKF):
         top = len(self.params["residual_thresholds_m"])
         self.large_residuals = self.large_residuals + 1 if level == top else 0
 
-    def search_region(self) -> tuple[float, float, float, float] | None:
-        """The ±``box_half_width_m`` box around the estimate; None while lost, and before the filter
-        is localised within it (its largest position σ above the half-width): the box around a wrong
-        cold start would keep every later fix near it (MSFT folds 0–1: cold 11.2 m with it, 10.2 without)."""
+    def search_region(self) -> Area | None:
+        """Within ``box_half_width_m`` of the estimate (DESIGN's ±9 m box, as the circle the
+        fingerprint model restricts to); None while lost, and before the filter is localised within
+        it (its largest position σ above the half-width): the box around a wrong cold start would keep
+        every later fix near it (MSFT folds 0–1: cold 11.2 m with it, 10.2 without)."""
         b = self.params["box_half_width_m"]
         if self.lost or np.sqrt(np.linalg.eigvalsh(self.covariance)[-1]) > b:
             return None
         x, y = self.mean
-        return (float(x - b), float(y - b), float(x + b), float(y + b))
+        return Area(float(x), float(y), b)
 
     @property
     def pdr_position(self) -> np.ndarray:

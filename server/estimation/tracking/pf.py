@@ -88,7 +88,7 @@ from server.estimation.tracking.packed import (
 )
 from server.estimation.tracking.resampling import effective_sample_size, kld_count, systematic_resample
 from server.estimation.tracking.rng import make_rng, rng_from_state, rng_state
-from server.estimation.types import Fix, Step, StepJoint
+from server.estimation.types import Area, Fix, Step, StepJoint
 
 #: KLD-sampling (``min_particles`` < ``n_particles``) is off by default. Chosen on the tune
 #: scenarios of benchmarks/scenario_family.py (ε = 0.15, bins 1 m, at least 100: 6–8 kB per
@@ -587,7 +587,7 @@ class ParticleFilterTracker(selfcal.Calibrating, ParticleFilterXYTracker):
     def _has_plan(self) -> bool:
         return len(self.walls) > 0 or self.walkable is not None
 
-    def search_region(self) -> tuple[float, float, float, float] | None:
+    def search_region(self) -> Area | None:
         """``Calibrating.search_region`` on a floor without a plan; with one, anywhere: walls narrow
         the cloud, and a cloud that narrow fed the best matches near itself confirms itself (one
         stress walk of twelve followed a wrong corridor 15 m off at NEES 10³; docs/tracking-design.md)."""

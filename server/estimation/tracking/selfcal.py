@@ -30,7 +30,7 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from server.estimation.building_grid import grid_direction_deg
-from server.estimation.types import Step, StepJoint
+from server.estimation.types import Area, Step, StepJoint
 
 #: prior standard deviation of the heading bias at a session's start (degrees)
 BIAS0_STD_DEG = 10.0
@@ -308,7 +308,7 @@ class Calibrating:
         var = math.radians(std_deg) ** 2 + math.radians(step.heading_std_deg) ** 2
         self._observe_bias(math.remainder(z - float(self.state_mean[2]), 2 * math.pi), var)
 
-    def search_region(self) -> tuple[float, float, float, float] | None:
+    def search_region(self) -> Area | None:
         """The fingerprint model looks within ``search_sigmas`` × the largest position σ +
         ``search_margin_m`` of the estimate (None: anywhere, ``search_sigmas`` 0). A scan that
         resembles a far part of the building gives the best match near the walker instead of a fix
@@ -319,9 +319,8 @@ class Calibrating:
         if k <= 0:
             return None
         sd = math.sqrt(max(float(np.linalg.eigvalsh(self.state_covariance[:2, :2])[-1]), 0.0))
-        half = k * sd + self.params["search_margin_m"]
         x, y = (float(v) for v in self.state_mean[:2])
-        return (x - half, y - half, x + half, y + half)
+        return Area(x, y, k * sd + self.params["search_margin_m"])
 
     def _floats(self) -> tuple[Vec4, Mat4]:
         """[x, y, b, s] and its covariance as Python floats (what the grid's update computes on)."""
