@@ -55,7 +55,7 @@ from .msft import (
     survey_rows,
     wifi_scans,
 )
-from .pdr import PdrConfig
+from .pdr import PdrConfig, PdrStep
 from .pdr.step_length import weinberg
 
 FILTERS = ("skpf", "ekf", "ukf", "kf", "pf", "fkf")
@@ -357,11 +357,16 @@ def initial_direction_deg(waypoints: np.ndarray, min_m: float = 2.0) -> float:
     return math.degrees(math.atan2(dx, dy))
 
 
-def first_step_turn_deg(w: Walk, steps) -> float:
+def first_step(w: Walk, steps: list[PdrStep]) -> PdrStep | None:
+    """The walk's first step after its start (the first waypoint), None without one."""
+    return next((s for s in steps if s.t > w.t_start), None)
+
+
+def first_step_turn_deg(w: Walk, steps: list[PdrStep]) -> float:
     """How far the walk's true start direction is from its first step's reported heading (what a phone
     told its start direction learns of its own heading bias; 0 without a step)."""
-    first = [s for s in steps if s.t > w.t_start]
-    return initial_direction_deg(w.waypoints) - first[0].heading_deg if first else 0.0
+    first = first_step(w, steps)
+    return 0.0 if first is None else initial_direction_deg(w.waypoints) - first.heading_deg
 
 
 async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, flt: str, initial: bool,
@@ -375,11 +380,11 @@ async def track_session(device: LocalizerClient, site_id, p: Prepared, steps, fl
     init = None
     if initial:
         init = {"x": float(w.waypoints[0, 1]), "y": float(w.waypoints[0, 2]), "floor": 0}
-        first = [s for s in steps if s.t > w.t_start]
+        first = first_step(w, steps)
         if heading_std_deg is not None:
             init |= {"heading_deg": round(initial_direction_deg(w.waypoints), 2), "heading_std_deg": heading_std_deg}
-        elif first:
-            init["heading_deg"] = round(first[0].heading_deg, 2)
+        elif first is not None:
+            init["heading_deg"] = round(first.heading_deg, 2)
     seed = None if seed_salt is None else zlib.crc32(f"{w.name}|{seed_salt}".encode())
     session = await device.open_session(site_id, flt, init, seed=seed, filter_params=filter_params)
     batches = make_batches(steps, p.scans if scans else [], w.t_start, w.t_end, interval_s)
