@@ -3,11 +3,13 @@ correlation against the distance walked between two fixes.
 
     python benchmarks/fix_correlation.py [DATA_DIR] [--folds 4] [--algorithm knn]
     python benchmarks/fix_correlation.py --simulator tune [--n 12]     # the simulator's knn fixes
+    python benchmarks/fix_correlation.py --by place                     # d between the two places
 
 Per fold (walk i is tested in fold i % 4, as in ``client_sim msft``) a model is trained on the
 other walks as the server trains it (``fit_and_validate``: the covariance calibration included),
 and every scan of the fold's test walks is located. For each pair of fixes of one walk, d is the
-distance walked between them along the waypoint path; printed per band of d: the correlation of
+distance walked between them along the waypoint path (``--by place``: the straight distance between
+the two true positions, which stays small for a walker who wanders about one spot); printed per band of d: the correlation of
 the two fixes' errors (Σ eᵢ·eⱼ / √(Σ|eᵢ|²·Σ|eⱼ|²), raw in metres and whitened by each fix's
 calibrated covariance), i.e. the share ρ of a fix's error that a fix d metres on still carries.
 ``--simulator SPLIT`` measures the same on the knn fixes of ``benchmarks/scenario_family.py``'s
@@ -44,6 +46,15 @@ def walk_errors(fixes: np.ndarray, covariances: np.ndarray, truth: np.ndarray) -
     return err, whiten(err, covariances), distance_walked(truth)
 
 
+def pair_distances(truth: np.ndarray, walked: np.ndarray, by: str) -> np.ndarray:
+    """d of each pair i < j (``np.triu_indices`` order): the distance walked between the two fixes,
+    or (``by`` "place") the straight distance between their true positions."""
+    i, j = np.triu_indices(len(truth), 1)
+    if by == "place":
+        return np.hypot(*(truth[j] - truth[i]).T)
+    return np.abs(walked[j] - walked[i])
+
+
 def msft_walks(data_dir: str, folds: int, algorithm: str):
     """Each MSFT test walk's (fixes, calibrated covariances, truth), its fold's model trained on
     the other folds' walks as the server trains it."""
@@ -70,10 +81,10 @@ def simulator_walks(split: str, n: int):
                np.array([p for _, p in pairs]))
 
 
-def band_sums(err: np.ndarray, walked: np.ndarray) -> np.ndarray:
-    """Per band: [Σ eᵢ·eⱼ, Σ|eᵢ|², Σ|eⱼ|², pairs] over the walk's pairs i < j."""
+def band_sums(err: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Per band of the pairs' distances ``d`` (``pair_distances``): [Σ eᵢ·eⱼ, Σ|eᵢ|², Σ|eⱼ|², pairs]
+    over the walk's pairs i < j."""
     i, j = np.triu_indices(len(err), 1)
-    d = np.abs(walked[j] - walked[i])
     dot, ni, nj = (err[i] * err[j]).sum(1), (err[i] ** 2).sum(1), (err[j] ** 2).sum(1)
     out = np.zeros((len(BANDS), 4))
     for b, (lo, hi) in enumerate(BANDS):
@@ -93,6 +104,8 @@ def main() -> None:
     ap.add_argument("--algorithm", default="knn")
     ap.add_argument("--simulator", choices=["tune", "heldout", "stress"], help="the simulator's scenarios instead")
     ap.add_argument("--n", type=int, default=12, help="with --simulator: scenarios 0..n-1")
+    ap.add_argument("--by", choices=["walked", "place"], default="walked",
+                    help="d: the distance walked between two fixes, or between their true positions")
     a = ap.parse_args()
 
     walks = simulator_walks(a.simulator, a.n) if a.simulator else msft_walks(a.data_dir, a.folds, a.algorithm)
@@ -100,13 +113,15 @@ def main() -> None:
     walk_share = []
     for fixes, covariances, truth in walks:
         err, w, walked = walk_errors(fixes, covariances, truth)
-        raw += band_sums(err, walked)
-        white += band_sums(w, walked)
+        d = pair_distances(truth, walked, a.by)
+        raw += band_sums(err, d)
+        white += band_sums(w, d)
         walk_share.append(float(np.sum(err.mean(0) ** 2) / np.mean(np.sum(err**2, 1))))
     source = f"simulator {a.simulator} 0–{a.n - 1}, knn" if a.simulator else f"MSFT, {a.algorithm}, {a.folds} folds"
     print(f"{len(walk_share)} walks ({source}); share of a walk's mean squared fix error that is its "
           f"mean error (|ē|² / mean |e|²): median {np.median(walk_share):.2f}, mean {np.mean(walk_share):.2f}")
-    print("| distance walked between two fixes | pairs | error correlation (m) | whitened |")
+    what = "distance walked between two fixes" if a.by == "walked" else "distance between two fixes' true positions"
+    print(f"| {what} | pairs | error correlation (m) | whitened |")
     print("|---|---|---|---|")
     for b, (lo, hi) in enumerate(BANDS):
         band = f"{lo:g}–{hi:g} m" if hi < 1e8 else f"≥ {lo:g} m"

@@ -42,7 +42,7 @@ def test_shared_fixes_share_their_error_along_the_walk_as_declared():
     """``--fixes shared``: each fix's error has the declared marginal variance σ²I, and fixes a few
     metres apart share most of it (the real walks' property the simulator's knn fixes lack), while
     ``--fixes gaussian`` fixes share nothing."""
-    from benchmarks.fix_correlation import band_sums, correlation, walk_errors
+    from benchmarks.fix_correlation import band_sums, correlation, pair_distances, walk_errors
     from benchmarks.scenario_family import GaussianFixes, SharedFixes
 
     near = {}
@@ -54,10 +54,26 @@ def test_shared_fixes_share_their_error_along_the_walk_as_declared():
             fixes = kind(w, sc.gauss_fix_std_m, sc.seed + 4)
             xy = np.array([fixes.by_t[s.t] for s in w.scans])
             err, white, walked = walk_errors(xy, np.array([fixes.cov] * len(xy)), w.scan_truth)
-            sums += band_sums(white, walked)
+            sums += band_sums(white, pair_distances(w.scan_truth, walked, "walked"))
             squares, count = squares + float((white**2).sum()), count + len(white)
         assert squares / count == pytest.approx(2.0, rel=0.25)  # E|whitened error|² = 2 in 2-D
         near[kind] = correlation(sums)[1]  # fixes 2–5 m apart
     assert near[GaussianFixes] == pytest.approx(0.0, abs=0.1)
     # ≈ SHARED_WALK + SHARED_DECAYING·e^(−3.5 m / 8 m) ≈ 0.68 expected; the simulator's knn fixes: ≤ 0.25
     assert near[SharedFixes] > 0.5
+
+
+def test_fix_pairs_are_apart_by_distance_walked_or_by_place():
+    """A walker who goes 10 m out and comes back: the first and last fixes are 20 m apart by
+    the distance walked and 0 m apart by place."""
+    from benchmarks.fix_correlation import band_sums, pair_distances
+    from benchmarks.scenario_family import distance_walked
+
+    truth = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 0.0]])
+    walked = distance_walked(truth)
+    np.testing.assert_allclose(pair_distances(truth, walked, "walked"), [10.0, 20.0, 10.0])  # (0,1) (0,2) (1,2)
+    np.testing.assert_allclose(pair_distances(truth, walked, "place"), [10.0, 0.0, 10.0])
+    err = np.array([[1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]])  # the first and last fixes share their error
+    by_place = band_sums(err, pair_distances(truth, walked, "place"))
+    assert by_place[0, 0] == 1.0 and by_place[0, 3] == 1  # 0–2 m: the (0, 2) pair, e·e = 1
+    assert band_sums(err, pair_distances(truth, walked, "walked"))[0, 3] == 0
