@@ -81,6 +81,8 @@ def run_training_job(database_url: str, model_id: int) -> str:
         trained_on = len(fs)
         try:
             model, metrics = _fit(fs if trained_on else None, spec, transmitters)
+            # (a crowd fingerprint belongs to no reference point: the store gives it no label)
+            model.crowd_share_ = sum(label is None for label in fs.label) / trained_on if trained_on else 0.0
             if metrics is not None:
                 metrics["survey_grid"] = _survey_grid(fs, model_id)
             del fs

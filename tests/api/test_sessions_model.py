@@ -1,6 +1,6 @@
 """Tracking sessions with a real trained fingerprint model (synthetic site, knn):
 cold start from the first scan, fixes pulling the track onto the walk, fkf's search box,
-crowd fingerprints from confident estimates."""
+crowd fingerprints from confident estimates; a crowd-trained model answers outside the search circle."""
 
 from __future__ import annotations
 
@@ -84,3 +84,42 @@ def test_crowdsourcing_with_a_trained_model(admin, device, trained, clean_db):
     engine.dispose()
     assert len(rows) >= 1 and sum(r[2] for r in rows) >= 3
     assert all(math.hypot(r[0] - 4.0, r[1] - 4.0) < 2.0 for r in rows)
+
+
+def test_a_crowd_trained_model_answers_anywhere(admin, device, trained, clean_db, live_server):
+    """A session's search circle restricts a survey-only model; a model trained on crowd fingerprints
+    answers anywhere: its positions are where earlier sessions believed they were, and the circle would
+    let that map confirm the sessions' shared error (docs/tracking-design.md, "A defect the circle
+    brought")."""
+    positioning = live_server.app.state.positioning
+    scan = SYNTH.scan(0.0, 0.0, 0, None, np.random.default_rng(5), 1.0)
+    far = {"near": (12.0, 8.0), "radius_m": 3.0}  # the grid's far corner; the walker stands at (0, 0)
+
+    def answer(model_id, **near):
+        f = positioning.locate(trained["site"], scan, model_id=model_id, **near).fix
+        return np.array([f.x, f.y])
+
+    survey_free, survey_near = answer(trained["model"]), answer(trained["model"], **far)
+    assert np.hypot(*survey_free) < 3.0 and np.hypot(*(survey_near - far["near"])) <= far["radius_m"]
+
+    admin.patch(f"/api/v1/sites/{trained['site']}", json={"settings": {"crowdsourcing": True}})
+    sid = device.post("/api/v1/sessions", json={"site_id": trained["site"], "filter": "kf",
+                                                "initial": {"x": 4.0, "y": 4.0, "floor": 0}}).json()["id"]
+    rng = np.random.default_rng(3)
+    for seq in range(6):  # standing still at a reference point: crowd fingerprints there
+        standing = {"t": float(seq), "rss": SYNTH.scan(4.0, 4.0, 0, None, rng, 1.0)}
+        assert device.post(f"/api/v1/sessions/{sid}/batches", json={"seq": seq, "scans": [standing]}).status_code == 200
+    engine = create_engine(clean_db)
+    with engine.connect() as conn:
+        counts = dict(conn.execute(text("SELECT source, count(*) FROM fingerprints GROUP BY source")).all())
+    engine.dispose()
+    assert counts["crowd"] >= 1
+    crowd = wait_for(admin, trained["site"], admin.post(f"/api/v1/sites/{trained['site']}/models",
+                                                        json={"algorithm": "knn", "params": {"k": 3}}).json()["id"])
+    assert crowd["status"] == "ready", crowd
+    serving = positioning.serving_model(trained["site"], crowd["id"])
+    model = positioning.cache.get(serving.model_id, serving.sha256)
+    assert model.crowd_share_ == pytest.approx(counts["crowd"] / (counts["crowd"] + counts["survey"]))
+
+    crowd_free, crowd_near = answer(crowd["id"]), answer(crowd["id"], **far)
+    assert np.allclose(crowd_near, crowd_free) and np.hypot(*crowd_free) < 3.0

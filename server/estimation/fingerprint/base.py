@@ -357,6 +357,9 @@ class FingerprintModel:
         self.n_fingerprints_ = len(fs)
         data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
         self.calibration_: CovarianceCalibration = IDENTITY  # the training step (or ``_fit``) calibrates
+        #: the share of the fingerprints whose positions are crowd estimates, not surveyed (the training
+        #: step knows; ``Positioning.locate`` does not restrict such a model to a session's search circle)
+        self.crowd_share_ = 0.0
         self._fit(X, H, data)
         t1 = time.perf_counter()
         self.floor_clf_ = self._fit_floor_classifier(X, H, data)

@@ -65,7 +65,8 @@ TUNABLE: dict[str, Tunable] = {
     "grid_plan": Tunable(0, 1, "0: the pf leaves the grid out on a floor with a plan (default 1: the walls' grid)", integer=True),
     "grid_on_share": Tunable(0.01, 1.0, "share of straight runs taken as on the grid, the rest at any angle (pf)"),
     "search_sigmas": Tunable(0.0, 100.0, "the fingerprint model looks within this many of the tracker's largest "
-                             "position σ (+ search_margin_m) of its estimate (0: anywhere; ekf, ukf, skpf, pf without a plan)"),
+                             "position σ (+ search_margin_m) of its estimate (0: anywhere; ekf, ukf, skpf, pf without a plan; "
+                             "a model trained on crowd fingerprints always answers anywhere)"),
     "search_margin_m": Tunable(0.0, 10_000.0, "m added to the fingerprint model's search radius"),
     "scale0_std": Tunable(0.0, 1.0, "step-scale prior"),
     "scale_walk": Tunable(0.0, 0.5, "step-scale random walk per step"),
