@@ -175,7 +175,7 @@ class Positioning:
         model when the caller already knows it (else the database is asked)."""
         serving = serving or self.serving_model(site_id, model_id)
         model = self.cache.get(serving.model_id, serving.sha256)
-        if getattr(model, "crowd_share_", 0.0) > 0:  # (artifacts stored before it: survey-only)
+        if getattr(model, "crowd_share_", 0.0) > 0:  # (an artifact stored before it: survey-only until retrained)
             near = radius_m = None
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)
