@@ -168,15 +168,10 @@ class Positioning:
         serving: ServingModel | None = None,
     ) -> Located:
         """A fix for one scan; ``near``/``radius_m`` restrict candidates around a previous estimate
-        (a tracking session's search circle), except for a model trained on crowd fingerprints, which
-        answers anywhere: its positions are where earlier sessions believed they were, and a map of
-        those restricted to where this session believes it is confirms the error they share instead of
-        measuring it (docs/tracking-design.md, "A defect the circle brought"). ``serving`` names the
-        model when the caller already knows it (else the database is asked)."""
+        (a tracking session's search circle; a model trained on crowd fingerprints answers anywhere).
+        ``serving`` names the model when the caller already knows it (else the database is asked)."""
         serving = serving or self.serving_model(site_id, model_id)
         model = self.cache.get(serving.model_id, serving.sha256)
-        if getattr(model, "crowd_share_", 0.0) > 0:  # (an artifact stored before it: survey-only until retrained)
-            near = radius_m = None
         try:
             fix = model.locate(rss, heading_deg, near=near, radius_m=radius_m)
         except UnknownTransmittersError:

@@ -4,6 +4,7 @@ scan resembling a far part of the building gives the best match near the walker.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -104,6 +105,17 @@ def test_a_scan_like_a_far_corner_gives_the_best_match_near_the_walker(name, mod
     near, far = _far_scan(name, model, search_sigmas=0.0)
     assert near is None and math.hypot(far.x - 40.0, far.y - 20.0) < 6.0
     assert math.hypot(fix.x - 0.7, fix.y) < math.hypot(far.x - 0.7, far.y) - 20.0
+
+
+def test_a_model_trained_on_crowd_fingerprints_answers_anywhere(model):
+    """Its positions are earlier sessions' beliefs: the circle would let them confirm a session's error."""
+    crowd = copy.copy(model)
+    crowd.model = copy.copy(model.model)  # (the module's model stays survey-only)
+    crowd.model.crowd_share_ = 0.5
+    near, fix = _far_scan("ekf", crowd)
+    assert near is not None  # the session still asks for its circle ...
+    assert math.hypot(fix.x - 40.0, fix.y - 20.0) < 6.0  # ... and the model answers with the far corner
+    assert math.hypot(fix.x - near.x, fix.y - near.y) > near.radius_m
 
 
 @pytest.mark.parametrize("name", CALIBRATING)

@@ -358,7 +358,7 @@ class FingerprintModel:
         data = TrainingData(fs=fs, rp=rp, row_group=self.rp_group_[rp.row_rp] if len(fs) else np.zeros(0, int))
         self.calibration_: CovarianceCalibration = IDENTITY  # the training step (or ``_fit``) calibrates
         #: the share of the fingerprints whose positions are crowd estimates, not surveyed (the training
-        #: step knows; ``Positioning.locate`` does not restrict such a model to a session's search circle)
+        #: step knows; such a model is never restricted to ``near``, ``_near_mask``)
         self.crowd_share_ = 0.0
         self._fit(X, H, data)
         t1 = time.perf_counter()
@@ -477,8 +477,13 @@ class FingerprintModel:
         return heading_features(h)
 
     def _near_mask(self, near, radius_m, n: int) -> np.ndarray | None:
+        """Which reference points each query may answer with (None: any). A model trained on crowd
+        fingerprints is not restricted: its positions are where earlier tracking sessions believed they
+        were, and a map of those restricted to where a session believes it is confirms the error they
+        share instead of measuring it (docs/tracking-design.md, "A defect the circle brought"; an
+        artifact stored before ``crowd_share_`` counts as survey-only until retrained)."""
         a = _near_array(near, n)
-        if a is None or radius_m is None:
+        if a is None or radius_m is None or getattr(self, "crowd_share_", 0.0) > 0:
             return None
         d2 = ((self.rp_xy_[None, :, :] - a[:, None, :2]) ** 2).sum(-1)
         mask = d2 <= float(radius_m) ** 2
