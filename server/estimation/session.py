@@ -73,7 +73,8 @@ GATE_D2 = 13.82
 #: (weighted by the widened covariance) instead of one fix being taken blindly
 MAX_GATED_IN_A_ROW = 3
 INFLATE_FACTOR = 2.0
-#: a session started on a fix (no initial position) starts no wider than this (m, per axis):
+#: a self-calibrating tracker started on a fix (a session without an initial position) starts no
+#: wider than this (m, per axis; `cold_start_cov`):
 #: the model's covariance is its posterior's spread, far candidates included (σ ≈ 40 m on the
 #: MSFT walks, whose first fix is 14 m off in mean, when this was chosen; ≈ 13 m since the
 #: training step calibrates on every walk held out once), and a cloud that wide, clipped to the
@@ -83,11 +84,18 @@ INFLATE_FACTOR = 2.0
 #: there, because a wrong first fix then weighs less against the later ones: the start's
 #: variance is 0.56× a later fix's, not 0.25×; docs/msft-evaluation.md, "Cold start")
 COLD_START_MAX_STD_M = 15.0
+#: every other start from a fix (a seed form's first fix, any filter's restart on a confirmed floor
+#: change) starts no wider than this (m, per axis): far wider than a fix's calibrated σ (≤ 40 m on
+#: the MSFT walks), so such fixes start as given, but a start as wide as a degenerate fix is unsafe:
+#: a path-loss model's fix from transmitters nearly in a line has σ ≈ 10⁵–10⁶ m across the line and
+#: a nearly singular covariance, and a tracker started on one was sent 5–400 km away by the next (or
+#: raised, ukf-xy); the multi-floor crowd benchmark's round 1 on seed 5 tracked at a 519 m mean
+START_MAX_STD_M = 100.0
 #: ... and its fixes' scale (``FixNoiseScale``) starts from this prior instead of 1: it has no
 #: position but its fixes to learn their scatter from, while a wide model covariance makes it
 #: follow them slowly (chosen on MSFT folds 0–1 among 0.15, 0.25, 0.35, 0.5; the known-start
 #: sessions keep the prior 1; with the fixes at σ ≈ 13 m, 0.25 / 0.5 / 1 gave pf 8.6 / 9.2 / 10.2 m,
-#: skpf 9.6 / 9.6 / 9.5, ekf 9.4 / 9.3 / 9.3 there). Both apply to the trackers that learn their fix noise only.
+#: skpf 9.6 / 9.6 / 9.5, ekf 9.4 / 9.3 / 9.3 there). The prior applies to the trackers that learn their fix noise only.
 COLD_FIX_SCALE_PRIOR = 0.25
 #: ``FloorTracker`` follows one integer per floor: (building, level) packed as
 #: building · FLOOR_KEY + level (levels lie within ±FLOOR_KEY/2), so a state stored before
@@ -326,7 +334,7 @@ class SessionEstimator:
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
-            cov = fix.covariance
+            cov = cold_start_cov(fix.covariance, START_MAX_STD_M)
             if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
                 cov = cold_start_cov(cov)
@@ -340,11 +348,12 @@ class SessionEstimator:
         if self.floors.observe(floor_key(fix.building, fix.floor)):
             # A confirmed floor change (maybe into another building): its plan, restart from the fix there.
             self._use_plan(site)
-            R_start = fix_cov(fix.covariance)
+            R_start = cold_start_cov(fix.covariance, START_MAX_STD_M)
             self.tracker.reset(fix.mean, R_start)
             scale = self.fix_noise.scale
             if self._considered(fix.shared_share, narrowed=scale > 1.0) is not None:
-                self.shared_error.restart(R_start * max(scale, 1.0), fix.shared_share, R_start=R_start)
+                self.shared_error.restart(fix_cov(fix.covariance) * max(scale, 1.0), fix.shared_share,
+                                          R_start=R_start)
         elif floor_key(fix.building, fix.floor) == floor_before:
             refused = self._update(fix)
         # (a fix on another, not yet confirmed floor moves nothing)

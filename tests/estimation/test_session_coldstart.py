@@ -1,8 +1,9 @@
 """A session opened without a position starts on its first fix (``SessionEstimator.scan``). A
 fingerprint model's covariance can span the floor (its posterior's far candidates: σ ≈ 40 m on
 the MSFT walks, whose fixes are ≈ 14 m off): the self-calibrating trackers then start no wider
-than ``COLD_START_MAX_STD_M`` and trust their fixes from a lower prior scale, and a search box
-waits until the tracker is localised within it."""
+than ``COLD_START_MAX_STD_M`` and trust their fixes from a lower prior scale, every other start from
+a fix (a seed form's, a restart on a confirmed floor change) no wider than ``START_MAX_STD_M``, and a
+search box waits until the tracker is localised within it."""
 
 from __future__ import annotations
 
@@ -15,9 +16,11 @@ from server.estimation.floorplan import Walkable
 from server.estimation.session import (
     COLD_FIX_SCALE_PRIOR,
     COLD_START_MAX_STD_M,
+    START_MAX_STD_M,
     SessionEstimator,
     cold_start_cov,
 )
+from server.estimation.tracking import tracker_names
 from server.estimation.tracking.fixnoise import FixNoiseScale
 from server.estimation.types import Fix, Scan, SiteMap, Step
 
@@ -104,6 +107,40 @@ def test_a_seed_form_starts_on_the_fix_as_the_model_gives_it(name):
     assert est.tracker is not None
     assert np.sqrt(np.linalg.eigvalsh(est.tracker.covariance)[-1]) > 30.0
     assert est.fix_noise.scale == 1.0
+
+
+#: Fixes of the path-loss model from transmitters nearly in a line (multi-floor crowd scenario,
+#: seed 5): σ ≈ 10⁵–10⁶ m across the line, the covariance nearly singular, the means ≈ 2 m apart.
+DEGENERATE = [Fix(29.4, -0.4, 1, np.array([[7.39e10, 3.17e10], [3.17e10, 1.36e10]])),
+              Fix(28.8, 1.2, 1, np.array([[4.49e11, 1.926e11], [1.926e11, 8.254e10]])),
+              Fix(28.6, 1.6, 1, np.array([[2.335e11, 1.001e11], [1.001e11, 4.29e10]]))]
+
+
+def _walk_on_degenerate_fixes(est: SessionEstimator, first_t: float = 0.0) -> list:
+    out = []
+    for i in range(6):
+        t = first_t + 2.0 * i
+        est.step(Step(t, 0.7, 180.0))
+        out.append(est.scan(Scan(t + 0.5, {"wifi:x": -50.0}), DEGENERATE[i % 3], SiteMap()).estimate)
+    return out
+
+
+@pytest.mark.parametrize("name", tracker_names())
+def test_degenerate_fixes_at_a_cold_start_or_a_floor_change_keep_the_track_on_the_site(name):
+    """A tracker (re)started on such a fix with its covariance as given went 5–400 km away on its
+    next fixes (the multi-floor crowd benchmark's round 1: a 519 m mean) or raised (ukf-xy); every
+    start from a fix, the first one or a confirmed floor change, is capped (``START_MAX_STD_M``)."""
+    cold = SessionEstimator(name, seed=3)
+    track = _walk_on_degenerate_fixes(cold)
+    moved = SessionEstimator(name, seed=3)
+    moved.start([20.0, 10.0], np.eye(2), 0, [], None, "init")
+    after = [e for e in _walk_on_degenerate_fixes(moved) if e.floor == 1]
+    assert len(after) >= 3  # the floor change confirmed, then fixes on the new floor
+    for e in track + after:  # (across the transmitters' line the fixes say nothing: within 2σ of the cap)
+        assert np.hypot(e.x - 28.8, e.y - 1.2) < 2 * START_MAX_STD_M
+        assert np.all(np.isfinite(e.covariance))  # (the reported one keeps what the cap left out: honest, wide)
+    for est in (cold, moved):
+        assert est.tracker is not None and np.linalg.eigvalsh(est.tracker.covariance)[-1] < 1.5 * START_MAX_STD_M**2
 
 
 def test_the_search_box_waits_until_the_tracker_is_localised_within_it():
