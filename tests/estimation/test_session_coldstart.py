@@ -163,3 +163,19 @@ def test_the_fix_noise_prior_round_trips_and_an_older_pair_reads_at_prior_one():
     assert FixNoiseScale.from_list(json.loads(json.dumps(s.to_list()))) == s
     assert FixNoiseScale.from_list([0.0, 0.0]).prior == 1.0
     assert FixNoiseScale().to_list() == [0.0, 0.0]  # the stored form of a known-start session is unchanged
+
+
+@pytest.mark.parametrize("name", tracker_names())
+def test_a_fix_degenerate_beyond_working_precision_updates_without_raising(name):
+    """A path-loss fix logged in the multi-floor crowd benchmark (seed 4): 10¹⁷ m² across the transmitters'
+    line and rank one to working precision. Taken as R it made P + R singular and every filter raised (a
+    500 for that batch on every retry); ``fix_cov`` bounds its variance at ``MAX_FIX_VAR_M2``."""
+    R = np.array([[1.714108329735443e17, -3.166785238423323e17], [-3.166785238423323e17, 5.850580486849203e17]])
+    est = SessionEstimator(name, seed=1)
+    est.scan(Scan(0.0, {}), Fix(10.0, 10.0, 0, np.eye(2) * 9.0), SiteMap())
+    for k in range(8):
+        est.step(Step(0.5 * k + 0.5, 0.7, 90.0))
+        if k % 2 == 1:
+            est.scan(Scan(0.5 * k + 0.6, {}), Fix(10.0 + 0.7 * (k + 1), 10.0, 0, np.eye(2) * 9.0), SiteMap())
+    e = est.scan(Scan(5.0, {}), Fix(12.0, 10.0, 0, R), SiteMap()).estimate
+    assert np.hypot(e.x - 15.6, e.y - 10.0) < 5.0 and np.all(np.isfinite(e.covariance))

@@ -139,3 +139,16 @@ def test_fix_cov_entries_equal_fix_cov():
     for bad in (np.full((2, 2), np.nan), [[1.0, 0.0], [0.0, np.inf]], np.eye(3)):
         with pytest.raises(ValueError):
             fix_cov_entries(bad)
+
+
+def test_fix_cov_bounds_both_axes_and_keeps_them():
+    from server.estimation.tracking.base import MAX_FIX_VAR_M2, MIN_FIX_VAR_M2, fix_cov, fix_cov_entries
+
+    c, s = np.cos(0.4), np.sin(0.4)
+    axes = np.array([[c, -s], [s, c]])
+    wide = axes @ np.diag([1e12, 4.0]) @ axes.T  # σ 1000 km along one axis, 2 m along the other
+    w, v = np.linalg.eigh(fix_cov(wide))
+    assert w == pytest.approx([4.0, MAX_FIX_VAR_M2], rel=1e-4)  # (4 m² within a 10¹² m² matrix's precision)
+    assert abs(v[:, 1] @ axes[:, 0]) == pytest.approx(1.0)
+    assert fix_cov_entries(wide) == pytest.approx(tuple(fix_cov(wide)[[0, 0, 1], [0, 1, 1]]))
+    assert np.linalg.eigvalsh(fix_cov(np.diag([0.0, 1e9])))[[0, -1]] == pytest.approx([MIN_FIX_VAR_M2, MAX_FIX_VAR_M2])

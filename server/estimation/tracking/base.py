@@ -95,35 +95,42 @@ def as_cov(cov: Any) -> np.ndarray:
 
 #: smallest variance (m²) a fix's covariance may have along any axis when used as R
 MIN_FIX_VAR_M2 = 0.01
+#: largest one (m², σ = 1 km): a fix that wide says nothing along that axis on any site, and wider
+#: ones are not harmless: a path-loss fix from transmitters nearly in a line reached 10¹⁷ m² across
+#: the line, nearly singular, and P + R was then singular to working precision (the update raised)
+MAX_FIX_VAR_M2 = 1.0e6
 
 
 def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
-    """A fix's covariance made usable as R: symmetric, eigenvalues at least ``min_var``.
+    """A fix's covariance made usable as R: symmetric, eigenvalues within [``min_var``,
+    ``MAX_FIX_VAR_M2``].
 
     Fingerprint models can answer with a singular covariance (all posterior mass on
-    one reference point); the floor keeps the update defined instead of raising.
+    one reference point); the floor keeps the update defined instead of raising. The
+    ceiling keeps a degenerate one (σ of 10⁸ m along one axis) from doing the same.
     """
     arr = _symmetric_2x2(cov, "fix covariance must be a finite 2x2 matrix")
     a, b, c = arr[0, 0], arr[0, 1], arr[1, 1]
-    lam_min = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
-    if lam_min >= min_var:
+    half_gap = np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    if 0.5 * (a + c) - half_gap >= min_var and 0.5 * (a + c) + half_gap <= MAX_FIX_VAR_M2:
         return arr
     w, v = np.linalg.eigh(arr)
-    return (v * np.maximum(w, min_var)) @ v.T
+    return (v * np.clip(w, min_var, MAX_FIX_VAR_M2)) @ v.T
 
 
 def fix_cov_entries(cov) -> tuple[float, float, float]:
     """``fix_cov(cov)`` as Python floats (r00, r01, r11); floats directly in the common case of a
-    well-conditioned 2×2 covariance, ``fix_cov`` itself otherwise (floor, scalar, errors)."""
+    well-conditioned 2×2 covariance, ``fix_cov`` itself otherwise (floor, ceiling, scalar, errors)."""
     try:
         (c00, c01), (c10, c11) = cov.tolist() if isinstance(cov, np.ndarray) else cov
         a, b, c = float(c00), 0.5 * (float(c01) + float(c10)), float(c11)
     except (TypeError, ValueError):
         a = b = c = math.nan
     if math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
-        if 0.5 * (a + c) - math.sqrt(0.25 * (a - c) ** 2 + b * b) >= MIN_FIX_VAR_M2:
+        half_gap = math.sqrt(0.25 * (a - c) ** 2 + b * b)
+        if 0.5 * (a + c) - half_gap >= MIN_FIX_VAR_M2 and 0.5 * (a + c) + half_gap <= MAX_FIX_VAR_M2:
             return a, b, c
-    R = fix_cov(cov)  # slow path: raises on bad input, floors a (near-)singular covariance
+    R = fix_cov(cov)  # slow path: raises on bad input, bounds a (near-)singular or degenerate covariance
     return float(R[0, 0]), float(R[0, 1]), float(R[1, 1])
 
 
