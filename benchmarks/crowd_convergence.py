@@ -9,7 +9,8 @@ model as the only source of fixes. Then, per round, unsurveyed phones walk in se
 without ``initial`` (cold start from their first scan), the server stores their confident
 estimates as crowd fingerprints, a KNN model is trained on the crowd data and activated,
 and ``locate`` is probed with fresh scans at known spots: that error is the cold-start fix
-a new phone would get.
+a new phone would get, and the NIS of those answers (their error under their own covariance; 2 on
+average when honest) says whether the covariance served with them can be trusted.
 """
 
 from __future__ import annotations
@@ -55,16 +56,18 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=1))
     print(f"{args.scenario}, {args.phones} phones per round ({args.filter}), {args.probes} locate probes per round")
-    print("| after round | model | crowd fingerprints | cold-start fix mean m | floor hit | tracking mean m |")
-    print("|---|---|---|---|---|---|")
+    print("| after round | model | crowd fingerprints | cold-start fix mean m | fix NIS mean / p50 | floor hit "
+          "| tracking mean m |")
+    print("|---|---|---|---|---|---|---|")
     for r in result["rounds"]:
         loc = r["locate"]
         mean = f"{loc['mean_error_m']:.2f}" if loc["mean_error_m"] is not None else "—"
+        nis = f"{loc['nis_mean']:.1f} / {loc['nis_p50']:.1f}" if loc.get("nis_mean") is not None else "—"
         floor = f"{loc['floor_hit_rate']:.0%}" if loc["floor_hit_rate"] is not None else "—"
         track = r.get("tracking_mean_error_m")
         label = "none (bootstrap)" if r["round"] < 0 else str(r["round"] + 1)
         print(f"| {label} | {r.get('model', {}).get('algorithm', '—')} | {r['site']['fingerprints']['crowd']} "
-              f"| {mean} | {floor} | {'—' if track is None else f'{track:.2f}'} |")
+              f"| {mean} | {nis} | {floor} | {'—' if track is None else f'{track:.2f}'} |")
 
 
 if __name__ == "__main__":

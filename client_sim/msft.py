@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .batches import Scan
+from .consistency import squared_mahalanobis
 from .imu import ImuData
 from .pdr import PdrConfig, PdrStep, heading_at, heading_track
 from .pdr.heading import field_strength_dip, gravity_up
@@ -351,8 +352,7 @@ def errors_against(walk: Walk, track) -> list[dict]:
         row = {"t": round(float(t), 3), "x": round(float(x), 3), "y": round(float(y), 3),
                "error_m": round(math.hypot(x - tx, y - ty), 3)}
         if cov:
-            d = np.array([x - tx, y - ty])
-            row["nees"] = round(float(d @ np.linalg.solve(np.asarray(cov[0], float), d)), 3)
+            row["nees"] = round(squared_mahalanobis(x - tx, y - ty, cov[0]), 3)
         rows.append(row)
     return rows
 

@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 from tqdm import tqdm
 
+from .consistency import squared_mahalanobis
 from .http_client import LocalizerClient
 from .phone import PhoneTrace, simulate_phone
 from .radio import RadioModel
@@ -182,10 +183,12 @@ async def run_track(base_url: str, device_key: str, scenario: World | str, site_
 
 
 async def probe_locate(api: LocalizerClient, world: World, site_id, n: int, seed: int) -> dict:
-    """Cold-start accuracy: ``locate`` fresh scans at ``n`` random reference points."""
+    """Cold-start accuracy: ``locate`` fresh scans at ``n`` random reference points; with the NIS of
+    each answer against the truth under its own covariance (``nis_mean``/``nis_p50``: 2 / 1.39 when the
+    served covariance is honest)."""
     rng = np.random.default_rng([world.seed, seed, 0xC0])
     radio = RadioModel(world)
-    errors, floor_hits, failures = [], 0, 0
+    errors, nis, floor_hits, failures = [], [], 0, 0
     for k in rng.choice(len(world.reference_points), size=min(n, len(world.reference_points)), replace=False):
         x, y, floor = world.reference_points[k]
         heading = float(rng.choice([0.0, 90.0, 180.0, 270.0]))
@@ -196,9 +199,11 @@ async def probe_locate(api: LocalizerClient, world: World, site_id, n: int, seed
             failures += 1
             continue
         errors.append(math.hypot(fix["x"] - x, fix["y"] - y))
+        nis.append(squared_mahalanobis(fix["x"] - x, fix["y"] - y, fix["covariance"]))
         floor_hits += int(fix["floor"] == floor)
     return {"probes": n, "answered": len(errors), "failed": failures,
             "mean_error_m": float(np.mean(errors)) if errors else None,
+            "nis_mean": float(np.mean(nis)) if nis else None, "nis_p50": float(np.median(nis)) if nis else None,
             "floor_hit_rate": floor_hits / len(errors) if errors else None}
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import re
 
 import pytest
@@ -75,6 +76,8 @@ def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server
     assert all(r["sessions_ok"] == 3 for r in rounds)
     assert rounds[-1]["model"]["status"] == "ready" and rounds[-1]["model"]["active"] is True
     assert rounds[-1]["locate"]["answered"] == 8
+    nis_mean, nis_p50 = rounds[-1]["locate"]["nis_mean"], rounds[-1]["locate"]["nis_p50"]
+    assert math.isfinite(nis_mean) and nis_mean > 0 and math.isfinite(nis_p50) and nis_p50 > 0
 
 
 # ------------------------------------------------------------------ the CLI against a live server
