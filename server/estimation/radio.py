@@ -76,7 +76,12 @@ def multilaterate(anchors_xy: np.ndarray, ranges_m: np.ndarray, x0=None,
                   min_rel_error: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares position from ranges to anchors (relative residuals
     ``(|p − a| − r)/r``, soft-L1). Returns (xy, 2×2 covariance in m²). Fewer than three
-    anchors: the weighted centroid with a covariance from the ranges."""
+    anchors: the weighted centroid with a covariance from the ranges.
+
+    The covariance is s²(JᵀJ)⁻¹ (s the relative range error) taken through JᵀJ's eigenvalues (each at
+    least 10⁻¹² of the largest): with the anchors nearly in a line and the position on it, JᵀJ is
+    nearly singular, and its plain inverse claimed σ ≈ 10⁸ m across the line and lost the
+    well-determined direction's variance to rounding (a fix then looked exact along it)."""
     A = np.asarray(anchors_xy, dtype=float)
     r = np.maximum(np.asarray(ranges_m, dtype=float), 0.5)
     start = weighted_centroid(A, r) if x0 is None else np.asarray(x0, dtype=float)
@@ -90,10 +95,8 @@ def multilaterate(anchors_xy: np.ndarray, ranges_m: np.ndarray, x0=None,
     sol = least_squares(resid, start, loss="soft_l1", f_scale=0.3)
     J = sol.jac
     s2 = max(float(np.sum(sol.fun**2)) / max(len(A) - 2, 1), min_rel_error**2)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
+    lam, V = np.linalg.eigh(J.T @ J)
+    cov = s2 * (V / np.maximum(lam, 1e-12 * max(float(lam[-1]), 1e-300))) @ V.T
     if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) <= 0):
         cov = np.eye(2) * (s2 * float(np.mean(r)) ** 2)
     return sol.x, cov

@@ -70,6 +70,19 @@ def test_multilateration_exact_and_centroid_weights():
     assert np.allclose(c, [2.5, 0.0])
 
 
+@pytest.mark.parametrize("off", [(1.0, 1.0, 1.0, 1.0), (1.1, 0.9, 1.05, 1.0)])
+def test_multilateration_on_the_anchors_line_is_unsure_only_across_it(off):
+    """Anchors in a line and the walker on it: the ranges fix the position along the line, not the side
+    of it. The plain inverse of JᵀJ was singular there, and the fallback claimed σ ≈ 1 m every way."""
+    anchors = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    ranges = np.hypot(*(anchors - [12.0, 0.0]).T) * np.array(off)
+    xy, cov = multilaterate(anchors, ranges)
+    w, v = np.linalg.eigh(cov)
+    assert np.all(np.isfinite(cov)) and w[0] > 0
+    assert abs(v[0, 0]) == pytest.approx(1.0, abs=1e-6)  # the sure direction is along the line
+    assert w[0] < 1.0 and w[1] > 100.0**2
+
+
 def _fix(x, y, var, floor=0):
     return Fix(x=x, y=y, floor=floor, covariance=np.eye(2) * var)
 
