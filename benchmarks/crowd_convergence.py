@@ -10,7 +10,8 @@ without ``initial`` (cold start from their first scan), the server stores their 
 estimates as crowd fingerprints, a KNN model is trained on the crowd data and activated,
 and ``locate`` is probed with fresh scans at known spots: that error is the cold-start fix
 a new phone would get, and the NIS of those answers (their error under their own covariance; 2 on
-average when honest) says whether the covariance served with them can be trusted.
+average when honest) says whether the covariance served with them can be trusted; the round's
+sessions are scored the same way (tracking error, NEES, and the share of estimates on the true floor).
 """
 
 from __future__ import annotations
@@ -57,17 +58,20 @@ def main() -> None:
     Path(args.out).write_text(json.dumps(result, indent=1))
     print(f"{args.scenario}, {args.phones} phones per round ({args.filter}), {args.probes} locate probes per round")
     print("| after round | model | crowd fingerprints | cold-start fix mean m | fix NIS mean / p50 | floor hit "
-          "| tracking mean m |")
-    print("|---|---|---|---|---|---|---|")
+          "| tracking mean m | tracking NEES mean / p50 | tracking floor hit |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in result["rounds"]:
         loc = r["locate"]
         mean = f"{loc['mean_error_m']:.2f}" if loc["mean_error_m"] is not None else "—"
         nis = f"{loc['nis_mean']:.1f} / {loc['nis_p50']:.1f}" if loc.get("nis_mean") is not None else "—"
         floor = f"{loc['floor_hit_rate']:.0%}" if loc["floor_hit_rate"] is not None else "—"
         track = r.get("tracking_mean_error_m")
+        nees = (f"{r['tracking_nees_mean']:.1f} / {r['tracking_nees_p50']:.1f}" if r.get("tracking_nees_mean") is not None
+                else "—")
+        tfloor = f"{r['tracking_floor_hit_rate']:.0%}" if r.get("tracking_floor_hit_rate") is not None else "—"
         label = "none (bootstrap)" if r["round"] < 0 else str(r["round"] + 1)
         print(f"| {label} | {r.get('model', {}).get('algorithm', '—')} | {r['site']['fingerprints']['crowd']} "
-              f"| {mean} | {nis} | {floor} | {'—' if track is None else f'{track:.2f}'} |")
+              f"| {mean} | {nis} | {floor} | {'—' if track is None else f'{track:.2f}'} | {nees} | {tfloor} |")
 
 
 if __name__ == "__main__":

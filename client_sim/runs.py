@@ -85,10 +85,14 @@ async def run_survey(base_url: str, admin_key: str, scenario: World | str, *, sc
 
 
 def _estimate_row(est: dict, trace: PhoneTrace) -> dict:
+    """An estimate against the truth: its error and, when it has a covariance, its NEES."""
     tx, ty, tf = trace.truth_at(est["t"])
-    return {"t": est["t"], "x": est["x"], "y": est["y"], "floor": est["floor"], "source": est.get("source"),
-            "true_x": round(tx, 3), "true_y": round(ty, 3), "true_floor": tf,
-            "error_m": round(math.hypot(est["x"] - tx, est["y"] - ty), 3)}
+    row = {"t": est["t"], "x": est["x"], "y": est["y"], "floor": est["floor"], "source": est.get("source"),
+           "true_x": round(tx, 3), "true_y": round(ty, 3), "true_floor": tf,
+           "error_m": round(math.hypot(est["x"] - tx, est["y"] - ty), 3)}
+    if est.get("covariance") is not None:
+        row["nees"] = round(squared_mahalanobis(est["x"] - tx, est["y"] - ty, est["covariance"]), 3)
+    return row
 
 
 async def track_phone(api: LocalizerClient, site_id, trace: PhoneTrace, filter: str, *, initial: bool = True,
@@ -235,6 +239,11 @@ async def run_crowd(base_url: str, admin_key: str, device_key: str, scenario: Wo
                                      "session_errors": [str(x) for x in results if not isinstance(x, dict)][:3]}
             errs = [e["error_m"] for res in walked for e in res["batch_estimates"]]
             entry["tracking_mean_error_m"] = float(np.mean(errs)) if errs else None
+            nees = [e["nees"] for res in walked for e in res["batch_estimates"] if "nees" in e]
+            entry["tracking_nees_mean"] = float(np.mean(nees)) if nees else None
+            entry["tracking_nees_p50"] = float(np.median(nees)) if nees else None
+            entry["tracking_floor_hit_rate"] = (float(np.mean([e["floor"] == e["true_floor"] for res in walked
+                                                               for e in res["batch_estimates"]])) if errs else None)
             if train:
                 try:
                     model = await admin.train_model(site_id, train)

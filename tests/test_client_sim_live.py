@@ -78,6 +78,9 @@ def test_crowd_rounds_grow_the_map_from_a_site_without_survey(admin, live_server
     assert rounds[-1]["locate"]["answered"] == 8
     nis_mean, nis_p50 = rounds[-1]["locate"]["nis_mean"], rounds[-1]["locate"]["nis_p50"]
     assert math.isfinite(nis_mean) and nis_mean > 0 and math.isfinite(nis_p50) and nis_p50 > 0
+    assert all(math.isfinite(r["tracking_nees_mean"]) and r["tracking_nees_mean"] > 0 for r in rounds)
+    assert all(0.0 <= r["tracking_floor_hit_rate"] <= 1.0 for r in rounds)  # (one floor: every estimate on it)
+    assert rounds[-1]["tracking_floor_hit_rate"] == 1.0
 
 
 # ------------------------------------------------------------------ the CLI against a live server
