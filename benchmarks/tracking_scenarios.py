@@ -8,7 +8,10 @@ Starts a real server process on a fresh SQLite file, surveys each scenario with
 IMU, PDR steps and scans) once per filter through tracking sessions, each walk's sessions seeded
 alike (``session_seed``), so a run repeats to the digit, the particle filters included. Fingerprinting
 alone is ``locate`` on every scan; PDR alone is the phone's dead reckoning from the true
-start. Errors are against the simulator's ground truth at each estimate's time. The cost
+start. Errors are against the simulator's ground truth at each estimate's time, and so is each
+estimate's NEES (its error under its own covariance: 2 on average when the covariance is honest; for
+fingerprinting alone the NIS of each ``locate`` answer).
+With ``--cold`` the sessions open without ``initial`` (a cold start from their first scan). The cost
 column is the tracker library's µs per step + update, measured in this process.
 """
 
@@ -31,6 +34,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from tracker_cost import Bench, measure  # noqa: E402
 
+from client_sim.consistency import squared_mahalanobis  # noqa: E402
 from client_sim.errors import number, seed_int  # noqa: E402
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
@@ -50,8 +54,9 @@ def summary(errors: list[float]) -> dict[str, float]:
             "p90": float(np.percentile(e, 90)), "max": float(e.max())}
 
 
-async def fingerprint_only(api: LocalizerClient, site_id: int, trace) -> list[float]:
-    errors = []
+async def fingerprint_only(api: LocalizerClient, site_id: int, trace) -> tuple[list[float], list[float]]:
+    """``locate`` on every scan of the walk: (errors, NIS of each answer under its own covariance)."""
+    errors, nis = [], []
     for scan in trace.scans:
         try:
             fix = await api.locate(site_id, scan["rss"], scan.get("heading_deg"))
@@ -59,11 +64,12 @@ async def fingerprint_only(api: LocalizerClient, site_id: int, trace) -> list[fl
             continue
         x, y, _ = trace.truth_at(scan["t"])
         errors.append(math.hypot(fix["x"] - x, fix["y"] - y))
-    return errors
+        nis.append(squared_mahalanobis(fix["x"] - x, fix["y"] - y, fix["covariance"]))
+    return errors, nis
 
 
 async def evaluate(url: str, admin: str, device: str, scenario: str, walks: int, filters, algorithm: str,
-                   seed: int) -> dict:
+                   seed: int, initial: bool = True) -> dict:
     world = get_world(scenario)
     survey = await run_survey(url, admin, world, scans_per_heading=3, seed=seed, train=algorithm,
                               site_name=f"{scenario} {seed}")
@@ -74,19 +80,29 @@ async def evaluate(url: str, admin: str, device: str, scenario: str, walks: int,
     traces = [simulate_phone(world, world.routes[w % len(world.routes)], seed * 1000 + w, radio=radio)
               for w in range(walks)]
     errors: dict[str, list[float]] = {name: [] for name in ("pdr-only", "fingerprint-only", *filters)}
+    nees: dict[str, list[float]] = {name: [] for name in ("fingerprint-only", *filters)}
     async with LocalizerClient(url, device) as api:
-        runs = await asyncio.gather(*(track_phone(api, site_id, trace, f, session_seed=session_seed(seed, w))
+        runs = await asyncio.gather(*(track_phone(api, site_id, trace, f, initial=initial,
+                                                  session_seed=session_seed(seed, w))
                                        for w, trace in enumerate(traces) for f in filters))
         for run in runs:
             if run["failed_posts"]:
                 raise SystemExit(f"{scenario}/{run['filter']}: {run['failed_posts']} failed posts")
-            errors[run["filter"]] += [row["error_m"] for row in run["track"] if row["source"] != "init"]
+            rows = [row for row in run["track"] if row["source"] != "init"]
+            errors[run["filter"]] += [row["error_m"] for row in rows]
+            nees[run["filter"]] += [row["nees"] for row in rows if "nees" in row]
         for run in runs[:: len(filters)]:  # one per walk
             errors["pdr-only"] += [row["error_m"] for row in run["pdr_only"]]
         for trace in traces:
-            errors["fingerprint-only"] += await fingerprint_only(api, site_id, trace)
-    return {"scenario": scenario, "site_id": site_id, "walks": walks, "model": survey["model"],
-            "table": {name: summary(e) for name, e in errors.items() if e}}
+            fp_errors, fp_nis = await fingerprint_only(api, site_id, trace)
+            errors["fingerprint-only"] += fp_errors
+            nees["fingerprint-only"] += fp_nis
+    table = {name: summary(e) for name, e in errors.items() if e}
+    for name, v in nees.items():
+        if v and name in table:
+            table[name] |= {"nees_mean": float(np.mean(v)), "nees_p50": float(np.median(v))}
+    return {"scenario": scenario, "site_id": site_id, "walks": walks, "model": survey["model"], "initial": initial,
+            "table": table}
 
 
 def main() -> None:
@@ -96,6 +112,7 @@ def main() -> None:
     parser.add_argument("--filters", default=",".join(FILTERS))
     parser.add_argument("--algorithm", default="knn")
     parser.add_argument("--seed", type=seed_int, default=0)
+    parser.add_argument("--cold", action="store_true", help="sessions without `initial` (cold start)")
     parser.add_argument("--out", default="reports/tracking")
     args = parser.parse_args()
     filters = args.filters.split(",")
@@ -109,7 +126,8 @@ def main() -> None:
         try:
             for scenario in args.scenarios.split(","):
                 results.append(asyncio.run(evaluate(f"http://127.0.0.1:{port}", admin, device, scenario,
-                                                    args.walks, filters, args.algorithm, args.seed)))
+                                                    args.walks, filters, args.algorithm, args.seed,
+                                                    initial=not args.cold)))
         finally:
             stop_server(server)
     cost = measure({name: Bench(name, 300) for name in filters})
@@ -117,14 +135,15 @@ def main() -> None:
     lines = []
     for res in results:
         lines.append(f"\n{res['scenario']} ({SCENARIOS.get(res['scenario'], '')}), {res['walks']} walks, "
-                     f"model {res['model']['algorithm']}")
-        lines.append("| method | mean m | std m | p50 m | p90 m | max m | estimates | µs/step+update |")
-        lines.append("|---|---|---|---|---|---|---|---|")
+                     f"model {res['model']['algorithm']}{'' if res['initial'] else ', cold start'}")
+        lines.append("| method | mean m | std m | p50 m | p90 m | max m | NEES mean / p50 | estimates | µs/step+update |")
+        lines.append("|---|---|---|---|---|---|---|---|---|")
         for name, s in res["table"].items():
             c = cost.get(name)
             us = f"{c['predict_us'] + c['update_us']:.0f}" if c else "—"
+            nees = f"{s['nees_mean']:.1f} / {s['nees_p50']:.1f}" if "nees_mean" in s else "—"
             lines.append(f"| {name} | {s['mean']:.2f} | {s['std']:.2f} | {s['p50']:.2f} | {s['p90']:.2f} "
-                         f"| {s['max']:.2f} | {s['n']} | {us} |")
+                         f"| {s['max']:.2f} | {nees} | {s['n']} | {us} |")
     if "pf" in cost and "skpf" in cost:
         pf, sk = cost["pf"], cost["skpf"]
         lines.append(f"\nPF-1000 / SKPF cost per step+update: "
