@@ -4,6 +4,7 @@ correlation against the distance walked between two fixes.
     python benchmarks/fix_correlation.py [DATA_DIR] [--folds 4] [--algorithm knn]
     python benchmarks/fix_correlation.py --simulator tune [--n 12]     # the simulator's knn fixes
     python benchmarks/fix_correlation.py --by place                     # d between the two places
+    python benchmarks/fix_correlation.py --client-sim open_room [--n 6] # client_sim's walks and survey
 
 Per fold (walk i is tested in fold i % 4, as in ``client_sim msft``) a model is trained on the
 other walks as the server trains it (``fit_and_validate``: the covariance calibration included),
@@ -13,7 +14,9 @@ the two true positions, which stays small for a walker who wanders about one spo
 the two fixes' errors (Σ eᵢ·eⱼ / √(Σ|eᵢ|²·Σ|eⱼ|²), raw in metres and whitened by each fix's
 calibrated covariance), i.e. the share ρ of a fix's error that a fix d metres on still carries.
 ``--simulator SPLIT`` measures the same on the knn fixes of ``benchmarks/scenario_family.py``'s
-scenarios (its own model per scenario), to compare the simulator's map errors with the real ones.
+scenarios (its own model per scenario), to compare the simulator's map errors with the real ones;
+``--client-sim SCENARIO`` on ``client_sim``'s walks of that world (its survey, one device, fitted as
+the server fits it; the first ``--n`` walks as ``benchmarks/tracking_scenarios.py`` walks them).
 A tracker that fuses the fixes as independent assumes ρ = 0 at every d (docs/msft-evaluation.md,
 "The fixes' shared error as a consider state"). Chooses nothing; a diagnostic for a
 training-time estimate of ρ.
@@ -32,6 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.scenario_family import ModelFixes, World, distance_walked, draw, located, walk  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
+from client_sim.phone import simulate_phone  # noqa: E402
+from client_sim.radio import RadioModel  # noqa: E402
+from client_sim.runs import survey_fingerprints  # noqa: E402
+from client_sim.world import get_world  # noqa: E402
 from server.estimation.fingerprint import FingerprintSet, fit_and_validate, make_model  # noqa: E402
 from server.estimation.fingerprint.calibration import whiten  # noqa: E402
 
@@ -81,6 +88,22 @@ def simulator_walks(split: str, n: int):
                np.array([p for _, p in pairs]))
 
 
+def client_sim_walks(scenario: str, n: int, algorithm: str):
+    """Each of ``n`` client_sim walks' (fixes, calibrated covariances, truth): the model fitted on the
+    world's survey (3 scans per heading, seed 0, as ``tracking_scenarios.py`` surveys it) by
+    ``fit_and_validate``, every scan of the walk located."""
+    world = get_world(scenario)
+    fs = FingerprintSet.from_rows(survey_fingerprints(world, 3, 0))
+    model, _ = fit_and_validate(lambda: make_model(algorithm, {}, kinds=None), fs)
+    radio = RadioModel(world)
+    for w in range(n):
+        trace = simulate_phone(world, world.routes[w % len(world.routes)], w, radio=radio)
+        scans = [s for s in trace.scans if model.known_transmitters(s["rss"])]
+        fixes = model.locate_many([s["rss"] for s in scans], [s.get("heading_deg") for s in scans])
+        yield (np.array([(f.x, f.y) for f in fixes]), np.array([np.asarray(f.covariance, float) for f in fixes]),
+               np.array([trace.truth_at(s["t"])[:2] for s in scans]))
+
+
 def band_sums(err: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Per band of the pairs' distances ``d`` (``pair_distances``): [Σ eᵢ·eⱼ, Σ|eᵢ|², Σ|eⱼ|², pairs]
     over the walk's pairs i < j."""
@@ -103,12 +126,21 @@ def main() -> None:
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--algorithm", default="knn")
     ap.add_argument("--simulator", choices=["tune", "heldout", "stress"], help="the simulator's scenarios instead")
-    ap.add_argument("--n", type=int, default=12, help="with --simulator: scenarios 0..n-1")
+    ap.add_argument("--client-sim", metavar="SCENARIO", help="client_sim's walks of that world instead")
+    ap.add_argument("--n", type=int, default=12, help="with --simulator: scenarios 0..n-1; with --client-sim: walks")
     ap.add_argument("--by", choices=["walked", "place"], default="walked",
                     help="d: the distance walked between two fixes, or between their true positions")
     a = ap.parse_args()
 
-    walks = simulator_walks(a.simulator, a.n) if a.simulator else msft_walks(a.data_dir, a.folds, a.algorithm)
+    if a.simulator:
+        walks = simulator_walks(a.simulator, a.n)
+        source = f"simulator {a.simulator} 0–{a.n - 1}, knn"
+    elif a.client_sim:
+        walks = client_sim_walks(a.client_sim, a.n, a.algorithm)
+        source = f"client_sim {a.client_sim}, {a.algorithm}"
+    else:
+        walks = msft_walks(a.data_dir, a.folds, a.algorithm)
+        source = f"MSFT, {a.algorithm}, {a.folds} folds"
     raw, white = np.zeros((len(BANDS), 4)), np.zeros((len(BANDS), 4))
     walk_share = []
     for fixes, covariances, truth in walks:
@@ -117,7 +149,6 @@ def main() -> None:
         raw += band_sums(err, d)
         white += band_sums(w, d)
         walk_share.append(float(np.sum(err.mean(0) ** 2) / np.mean(np.sum(err**2, 1))))
-    source = f"simulator {a.simulator} 0–{a.n - 1}, knn" if a.simulator else f"MSFT, {a.algorithm}, {a.folds} folds"
     print(f"{len(walk_share)} walks ({source}); share of a walk's mean squared fix error that is its "
           f"mean error (|ē|² / mean |e|²): median {np.median(walk_share):.2f}, mean {np.mean(walk_share):.2f}")
     what = "distance walked between two fixes" if a.by == "walked" else "distance between two fixes' true positions"

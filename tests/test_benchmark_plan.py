@@ -77,3 +77,21 @@ def test_fix_pairs_are_apart_by_distance_walked_or_by_place():
     by_place = band_sums(err, pair_distances(truth, walked, "place"))
     assert by_place[0, 0] == 1.0 and by_place[0, 3] == 1  # 0–2 m: the (0, 2) pair, e·e = 1
     assert band_sums(err, pair_distances(truth, walked, "walked"))[0, 3] == 0
+
+
+def test_client_sim_walks_give_each_scan_its_fix_and_truth():
+    """``fix_correlation.py --client-sim``: every located scan of a walk has a fix, a positive definite
+    calibrated covariance and the walker's true position at that time, in walking order; the fixes'
+    whitened error has E|w|² of the order of 2 (the model is calibrated on the survey's held-out points)."""
+    from benchmarks.fix_correlation import client_sim_walks, walk_errors
+
+    walks = list(client_sim_walks("open_room", 2, "knn"))
+    assert len(walks) == 2
+    white_sq, n = 0.0, 0
+    for fixes, covariances, truth in walks:
+        assert fixes.shape == truth.shape and len(fixes) > 50 and covariances.shape == (len(fixes), 2, 2)
+        assert np.all(np.linalg.eigvalsh(covariances) > 0)
+        err, white, walked = walk_errors(fixes, covariances, truth)
+        assert np.all(np.diff(walked) >= 0) and walked[-1] > 20.0
+        white_sq, n = white_sq + float((white**2).sum()), n + len(white)
+    assert 0.5 < white_sq / n < 8.0
