@@ -545,6 +545,10 @@ class ModelMetrics(BaseModel):
     activation: ActivationOut | None = Field(None, description="Whether training activated the model, and why.")
     survey_grid: list[SurveyGridOut] | None = Field(None, description=(
         "The floors whose survey shows a grid (extension); absent for a model trained before it was measured."))
+    crowd_share: float | None = Field(None, ge=0.0, le=1.0, description=(
+        "Extension: the share of the training fingerprints that are crowd estimates. A model with any answers "
+        "anywhere: a tracking session's search circle does not restrict it (crowd positions are where earlier "
+        "sessions believed they were). Absent for a model trained before it was recorded."))
 
 
 class HeldOutPointErrorOut(BaseModel):

@@ -85,6 +85,7 @@ def run_training_job(database_url: str, model_id: int) -> str:
             model.crowd_share_ = sum(label is None for label in fs.label) / trained_on if trained_on else 0.0
             if metrics is not None:
                 metrics["survey_grid"] = _survey_grid(fs, model_id)
+                metrics["crowd_share"] = model.crowd_share_
             del fs
             blob = to_bytes(model)
         except Exception as exc:  # any failure of the fit is the job's failure, reported to the admin

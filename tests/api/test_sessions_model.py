@@ -120,6 +120,9 @@ def test_a_crowd_trained_model_answers_anywhere(admin, device, trained, clean_db
     serving = positioning.serving_model(trained["site"], crowd["id"])
     model = positioning.cache.get(serving.model_id, serving.sha256)
     assert model.crowd_share_ == pytest.approx(counts["crowd"] / (counts["crowd"] + counts["survey"]))
+    assert crowd["metrics"]["crowd_share"] == pytest.approx(model.crowd_share_)  # what the admin sees
+    assert admin.get(f"/api/v1/sites/{trained['site']}/models/{trained['model']}").json()["metrics"].get(
+        "crowd_share") in (None, 0.0)  # the survey-only model (stored before crowd data existed)
 
     crowd_free, crowd_near = answer(crowd["id"]), answer(crowd["id"], **far)
     assert np.allclose(crowd_near, crowd_free) and np.hypot(*crowd_free) < 3.0
