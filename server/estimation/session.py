@@ -57,6 +57,7 @@ from server.estimation.types import (
     ScanResult,
     SiteMap,
     Step,
+    TrackerFailure,
 )
 
 #: initial covariance (m²) when the phone gives a start position without one
@@ -220,12 +221,22 @@ class SessionEstimator:
         still counts); a fix the innovation gate refuses is reported, and the scan's beacon
         ranges and landmarks still apply. With ``crowdsourcing``, tight estimates that agree
         with their scan's own fix become crowd candidates (never the cold-start scan: there
-        the estimate *is* the fix)."""
+        the estimate *is* the fix). Raises ``TrackerFailure`` when the tracker fails numerically
+        on an input (this estimator is then unusable: the caller keeps its stored state)."""
         ordered = time_order(steps, scans)
         if self.last_t is not None:
             late = [LateInput(kind, i, item.t) for kind, i, item in ordered if item.t < self.last_t]
             if late:
                 raise LateInputs(late, self.last_t)
+        try:
+            return self._apply(ordered, fixes, site, crowdsourcing)
+        except (np.linalg.LinAlgError, ArithmeticError) as exc:
+            raise TrackerFailure(f"the {self.filter} tracker could not apply this batch's inputs "
+                                 f"({type(exc).__name__}: {exc})") from exc
+
+    def _apply(self, ordered: list[tuple[str, int, Step | Scan]], fixes: FixSource, site: SiteMap,
+               crowdsourcing: bool) -> BatchOutcome:
+        """`apply_batch` on inputs in time order, none late."""
         init_undated = self.estimate is not None and self.estimate.source == "init" and self.estimate.t is None
         estimates: list[Estimate] = []
         states: list[FullState | None] = []

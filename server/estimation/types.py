@@ -346,5 +346,11 @@ class LateInputs(ValueError):
         self.last_t = last_t
 
 
+class TrackerFailure(Exception):
+    """The tracker could not apply a batch's inputs: a numerical failure (a covariance no longer
+    positive definite, a singular innovation covariance). The estimator is then in an undefined
+    state and must be dropped; ``str(exc)`` says which tracker failed and how."""
+
+
 class NoFix(Exception):
     """A scan gives no fix (no model, no known transmitter...); ``str(exc)`` says why."""

@@ -15,6 +15,7 @@ the per-process ``SiteContexts`` while that revision holds) and one write transa
 
 from __future__ import annotations
 
+import logging
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -43,6 +44,7 @@ from server.estimation.types import (
     Scan,
     SiteMap,
     Step,
+    TrackerFailure,
 )
 from server.services.lru import Lru
 from server.services.positioning import Positioning, ServingModel
@@ -50,6 +52,8 @@ from server.services.site_context import SiteContexts
 from server.store import models as model_store
 from server.store import sessions as store
 from server.store import sites as site_store
+
+log = logging.getLogger(__name__)
 
 #: how often a feed starts over after losing the compare-and-set to a concurrent request
 MAX_ATTEMPTS = 20
@@ -300,6 +304,10 @@ class SessionService:
                     {"field": f"{i.kind}s.{i.index}.t", "msg": f"t {i.t} is before the session's last applied time {late.last_t}"}
                     for i in late.items[:100]
                 ]) from None
+            except TrackerFailure as failure:  # (the stored state is untouched: the phone can go on)
+                log.warning("session %s, batch %s: %s", session_id, seq, failure, exc_info=True)
+                raise Invalid([{"field": "batch", "msg": f"{failure}; nothing of this batch was applied and the "
+                                "session is as it was: send the next batch"}]) from None
             answer = BatchAnswer(seq, outcome.estimate, outcome.applied_steps, outcome.applied_scans,
                                  outcome.skipped_scans, outcome.rejected_fixes, outcome.rejected_snaps)
             # 3. write it all in one transaction, if nobody applied a batch meanwhile

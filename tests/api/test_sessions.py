@@ -459,6 +459,32 @@ def test_a_device_lists_its_own_sessions_newest_first_and_an_admin_lists_all(liv
 # --- persistence and concurrency ---------------------------------------------------------------
 
 
+def test_a_batch_the_tracker_fails_on_is_refused_and_the_session_goes_on(device, site, monkeypatch):
+    """A numerical failure inside the tracker (injected here: its prediction raises LinAlgError) is a 422
+    naming it, not a 500; nothing of that batch is stored, and the phone's next batch applies."""
+    from server.estimation.tracking.ekf import EKFTracker
+
+    sid = open_session(device, site, "ekf")["id"]
+    assert device.post(f"/api/v1/sessions/{sid}/batches", json=batch(0, 0.0)).status_code == 200
+    session_before = device.get(f"/api/v1/sessions/{sid}").json()
+    track_before = device.get(f"/api/v1/sessions/{sid}/track").json()
+
+    def singular(self, *args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(EKFTracker, "predict", singular)
+    answer = device.post(f"/api/v1/sessions/{sid}/batches", json=batch(1, 2.0))
+    assert answer.status_code == 422, answer.text
+    assert "ekf tracker could not apply" in answer.text and "LinAlgError" in answer.text
+    assert device.get(f"/api/v1/sessions/{sid}").json() == session_before
+    assert device.get(f"/api/v1/sessions/{sid}/track").json() == track_before
+
+    monkeypatch.undo()
+    assert device.post(f"/api/v1/sessions/{sid}/batches", json=batch(2, 4.0)).status_code == 200
+    assert device.get(f"/api/v1/sessions/{sid}").json()["last_seq"] == 2
+    assert len(device.get(f"/api/v1/sessions/{sid}/track").json()) == len(track_before) + 2
+
+
 def test_a_session_survives_a_server_restart_mid_walk(live_server, device, site, clean_db):
     sid = open_session(device, site, "skpf")["id"]
     answers = [device.post(f"/api/v1/sessions/{sid}/batches", json=batch(i, 2.0 * i, 3)).json() for i in range(3)]
