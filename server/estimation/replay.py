@@ -25,7 +25,7 @@ from server.estimation.session import FixSource, SessionEstimator
 from server.estimation.tracking.base import TRACKERS, Tracker
 from server.estimation.tracking.particle_smoother import DEFAULT_LAG, PathSmoother
 from server.estimation.tracking.pf import ParticleFilterXYTracker
-from server.estimation.types import Area, Estimate, Fix, NoFix, Scan, SiteMap, Step
+from server.estimation.types import Area, Estimate, Fix, NoFix, Scan, SiteMap, Step, TrackerFailure
 
 #: a replayed estimate reproduces a stored one when its position is within this (m) of it
 SAME_M = 1e-6
@@ -143,7 +143,7 @@ def smoothed_by_replay(opening: dict[str, Any], batches: Sequence[RecordedBatch]
             as_then = site if batch.grids is None else replace(site, grids=batch.grids)
             outcome = est.apply_batch(list(batch.steps), list(batch.scans), _Recorded(batch.fixes), as_then)
             replayed.extend(outcome.estimates)
-    except (_NotReproduced, ValueError, KeyError, TypeError):
+    except (_NotReproduced, TrackerFailure, ValueError, KeyError, TypeError):
         return None
     if not _reproduces(replayed, track):
         return None
