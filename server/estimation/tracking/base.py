@@ -110,12 +110,17 @@ def fix_cov(cov: Any, min_var: float = MIN_FIX_VAR_M2) -> np.ndarray:
     ceiling keeps a degenerate one (σ of 10⁸ m along one axis) from doing the same.
     """
     arr = _symmetric_2x2(cov, "fix covariance must be a finite 2x2 matrix")
-    a, b, c = arr[0, 0], arr[0, 1], arr[1, 1]
-    half_gap = np.sqrt(0.25 * (a - c) ** 2 + b * b)
-    if 0.5 * (a + c) - half_gap >= min_var and 0.5 * (a + c) + half_gap <= MAX_FIX_VAR_M2:
+    if _usable(float(arr[0, 0]), float(arr[0, 1]), float(arr[1, 1]), min_var):
         return arr
     w, v = np.linalg.eigh(arr)
     return (v * np.clip(w, min_var, MAX_FIX_VAR_M2)) @ v.T
+
+
+def _usable(a: float, b: float, c: float, min_var: float = MIN_FIX_VAR_M2) -> bool:
+    """Whether the symmetric 2×2 [[a, b], [b, c]] has both eigenvalues within [``min_var``,
+    ``MAX_FIX_VAR_M2``] (closed form: the mean of the diagonal ± half the eigenvalue gap)."""
+    half_gap = math.sqrt(0.25 * (a - c) ** 2 + b * b)
+    return 0.5 * (a + c) - half_gap >= min_var and 0.5 * (a + c) + half_gap <= MAX_FIX_VAR_M2
 
 
 def fix_cov_entries(cov) -> tuple[float, float, float]:
@@ -126,10 +131,8 @@ def fix_cov_entries(cov) -> tuple[float, float, float]:
         a, b, c = float(c00), 0.5 * (float(c01) + float(c10)), float(c11)
     except (TypeError, ValueError):
         a = b = c = math.nan
-    if math.isfinite(a) and math.isfinite(b) and math.isfinite(c):
-        half_gap = math.sqrt(0.25 * (a - c) ** 2 + b * b)
-        if 0.5 * (a + c) - half_gap >= MIN_FIX_VAR_M2 and 0.5 * (a + c) + half_gap <= MAX_FIX_VAR_M2:
-            return a, b, c
+    if math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and _usable(a, b, c):
+        return a, b, c
     R = fix_cov(cov)  # slow path: raises on bad input, bounds a (near-)singular or degenerate covariance
     return float(R[0, 0]), float(R[0, 1]), float(R[1, 1])
 
