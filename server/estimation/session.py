@@ -345,10 +345,10 @@ class SessionEstimator:
         self.advance(scan.t)
         if self.tracker is None or self.floors is None:
             walls = site.walls_of(fix.floor, fix.building)
-            cov = cold_start_cov(fix.covariance, START_MAX_STD_M)
-            if getattr(TRACKERS.get(self.filter), "augmented", False):  # (seed forms: the fix as given)
+            augmented = getattr(TRACKERS.get(self.filter), "augmented", False)
+            if augmented:  # (seed forms: the fix as given, up to START_MAX_STD_M)
                 self.fix_noise = FixNoiseScale(prior=COLD_FIX_SCALE_PRIOR)
-                cov = cold_start_cov(cov)
+            cov = cold_start_cov(fix.covariance, COLD_START_MAX_STD_M if augmented else START_MAX_STD_M)
             first = self.start(fix.mean, cov, fix.floor, walls, scan.t, "scan", fix.building,
                                site.walkable.get((fix.building, fix.floor)))
             if self._considered(fix.shared_share, narrowed=True) is not None:  # (the start's error is this fix's)
