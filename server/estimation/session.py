@@ -39,6 +39,7 @@ from server.estimation.tracking import (
 from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
+from server.estimation.tracking.measurements import log_range, log_range_H
 from server.estimation.tracking.shared_error import SharedFixError
 from server.estimation.types import (
     Area,
@@ -374,8 +375,7 @@ class SessionEstimator:
                 b = site.beacons.get(tx_id)
                 if b is not None and b.tx_power_dbm is not None and b.path_loss_exponent is not None \
                         and b.on(building, floor):
-                    r, std = range_and_std(rss, b.tx_power_dbm, b.path_loss_exponent)
-                    self.tracker.update_range((b.x, b.y), r, std)
+                    self._range((b.x, b.y), *range_and_std(rss, b.tx_power_dbm, b.path_loss_exponent))
         self.landmarks.beacons = {
             k: (b.x, b.y) for k, b in site.beacons.items() if k.startswith("ble:") and b.on(building, floor)
         }
@@ -383,6 +383,17 @@ class SessionEstimator:
         for snap in self.landmarks.observe(scan.rss)[:1]:
             refused_snap = self._snap(snap, building, floor)
         return ScanResult(self._record(scan.t, "scan"), refused, refused_snap)
+
+    def _range(self, beacon_xy: tuple[float, float], range_m: float, std_m: float) -> None:
+        """A beacon range, and what it does to ``shared_error`` when the tracker used it."""
+        assert self.tracker is not None
+        considered = self._considered()
+        prior = None if considered is None else (considered.state_mean, considered.state_covariance)
+        if self.tracker.update_range(beacon_xy, range_m, std_m) and prior is not None:
+            n = selfcal.N_AUG
+            _, sigma = log_range(range_m, std_m)
+            self.shared_error.measured(prior[1][:n, :n], log_range_H(prior[0][:n], np.asarray(beacon_xy, float)),
+                                       sigma**2)
 
     def _snap(self, snap: Snap, building: int, floor: int) -> str | None:
         """A landmark snap. A self-calibrating tracker takes it as a measurement, N(beacon,

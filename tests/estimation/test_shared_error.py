@@ -63,6 +63,38 @@ def test_the_excess_is_the_filters_true_error_covariance_when_fixes_share_an_off
     assert np.linalg.eigvalsh(shared.D[:2, :2]).min() > 0.1  # a real excess, not round-off
 
 
+def test_a_beacon_range_takes_from_the_excess_what_it_takes_from_the_error():
+    """A scalar measurement that shares nothing with the fixes (a beacon range, linearised row h):
+    after a fix that shares its error, P + D is still the error's true covariance and C its
+    covariance with the walk's offset (the exact joint propagation, 6 × 6)."""
+    P = np.diag([4.0, 9.0, math.radians(5) ** 2, 0.05**2])
+    P[0, 2] = P[2, 0] = 0.02
+    joint = np.zeros((6, 6))
+    joint[:4, :4], joint[4:, 4:] = P, np.eye(2)
+    shared = SharedFixError()
+    H = np.hstack([np.eye(2), np.zeros((2, 2))])
+    R, rho = np.array([[5.0, 1.0], [1.0, 3.0]]), 0.6
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    shared.fix(P, R, R, rho)
+    A = np.eye(4) - K @ H
+    P = A @ P @ A.T + K @ R @ K.T
+    T = np.eye(6)
+    T[:4, :4], T[:4, 4:] = A, math.sqrt(rho) * K @ np.linalg.cholesky(R)
+    joint = T @ joint @ T.T
+    joint[:4, :4] += K @ ((1 - rho) * R) @ K.T
+    for h, var in ((np.array([0.08, -0.06, 0.0, 0.0]), 0.04), (np.array([-0.02, 0.1, 0.0, 0.0]), 0.09)):
+        k = P @ h / (h @ P @ h + var)
+        shared.measured(P, h[None, :], var)
+        A = np.eye(4) - np.outer(k, h)
+        P = A @ P @ A.T + var * np.outer(k, k)
+        T = np.eye(6)
+        T[:4, :4] = A
+        joint = T @ joint @ T.T
+        joint[:4, :4] += var * np.outer(k, k)
+    np.testing.assert_allclose(P + shared.D, joint[:4, :4], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(shared.C, joint[:4, 4:], rtol=1e-9, atol=1e-12)
+
+
 def test_a_fix_that_shares_nothing_leaves_the_tracker_alone():
     shared = SharedFixError()
     P = np.eye(4)
