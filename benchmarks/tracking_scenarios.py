@@ -39,6 +39,7 @@ from client_sim.errors import number, seed_int  # noqa: E402
 from client_sim.http_client import LocalizerClient  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
+from client_sim.report import stats  # noqa: E402
 from client_sim.runs import run_survey, session_seed, track_phone  # noqa: E402
 from client_sim.server_process import free_port, start_server, stop_server  # noqa: E402
 from client_sim.world import get_world  # noqa: E402
@@ -46,12 +47,6 @@ from client_sim.world import get_world  # noqa: E402
 #: the self-calibrating filters, their two-state seed forms (``-xy``) and the linear ones
 FILTERS = ("skpf", "ekf", "ukf", "pf", "skpf-xy", "ekf-xy", "ukf-xy", "pf-xy", "kf", "fkf")
 SCENARIOS = {"open_room": "good signal", "corridor_loop": "poor signal"}
-
-
-def summary(errors: list[float]) -> dict[str, float]:
-    e = np.asarray(errors, dtype=float)
-    return {"n": int(e.size), "mean": float(e.mean()), "std": float(e.std()), "p50": float(np.percentile(e, 50)),
-            "p90": float(np.percentile(e, 90)), "max": float(e.max())}
 
 
 async def fingerprint_only(api: LocalizerClient, site_id: int, trace) -> tuple[list[float], list[float]]:
@@ -97,7 +92,7 @@ async def evaluate(url: str, admin: str, device: str, scenario: str, walks: int,
             fp_errors, fp_nis = await fingerprint_only(api, site_id, trace)
             errors["fingerprint-only"] += fp_errors
             nees["fingerprint-only"] += fp_nis
-    table = {name: summary(e) for name, e in errors.items() if e}
+    table = {name: stats(e) for name, e in errors.items() if e}
     for name, v in nees.items():
         if v and name in table:
             table[name] |= {"nees_mean": float(np.mean(v)), "nees_p50": float(np.median(v))}
