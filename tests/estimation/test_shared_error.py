@@ -15,7 +15,7 @@ from server.estimation.tracking import make_tracker, selfcal
 from server.estimation.tracking.particle_smoother import PathSmoother
 from server.estimation.tracking.shared_error import SharedFixError
 from server.estimation.tracking.smoother import smooth_track
-from server.estimation.types import Estimate, Fix, Scan, SiteMap, Step
+from server.estimation.types import Beacon, Estimate, Fix, Scan, SiteMap, Step
 
 AUGMENTED = ("ekf", "ukf", "skpf", "pf")
 
@@ -182,6 +182,31 @@ def test_a_session_carrying_the_shared_error_resumes_exactly(name):
         resumed = SessionEstimator.from_dict(json.loads(json.dumps(resumed.to_dict())))
         got += resumed.apply_batch(steps[k:k + 7], [s for s in scans if k <= s.t < k + 7], fixes,
                                    SiteMap()).estimates
+    assert got == expected
+
+
+@pytest.mark.parametrize("name", ["ekf", "pf"])
+def test_a_session_whose_excess_beacon_ranges_shrink_resumes_exactly(name):
+    """Beacon ranges count in the excess (``SharedFixError.measured``): resumed through JSON every 7
+    steps, such a session gives the same track, covariances included."""
+    steps, scans, _, at_scan = _walk(5, n=40)
+    scans = [Scan(s.t, {"wifi:a": -60.0, "ble:b": -64.0}) for s in scans]
+    site = SiteMap(beacons={"ble:b": Beacon("ble:b", 0.5, 5.0, 0, -59.0, 2.0)})  # (heard at ≈ 1.8 m: a range)
+    fixes = WalkFixes(at_scan, 3.0, 0.5, 0.5, 5)
+    straight = SessionEstimator(name, seed=3)
+    straight.start([0.0, 0.0], np.eye(2) * 0.25, 0, [], 0.0, "init")
+    plain = SessionEstimator(name, seed=3)
+    plain.start([0.0, 0.0], np.eye(2) * 0.25, 0, [], 0.0, "init")
+    expected = list(straight.apply_batch(steps, scans, fixes, site).estimates)
+    without = list(plain.apply_batch(steps, scans, fixes, SiteMap()).estimates)
+    assert len(without) == len(expected)
+    assert np.trace(straight.shared_error.D[:2, :2]) < 0.9 * np.trace(plain.shared_error.D[:2, :2])  # ranges took some
+    resumed = SessionEstimator(name, seed=3)
+    resumed.start([0.0, 0.0], np.eye(2) * 0.25, 0, [], 0.0, "init")
+    got: list[Estimate] = []
+    for k in range(0, 40, 7):
+        resumed = SessionEstimator.from_dict(json.loads(json.dumps(resumed.to_dict())))
+        got += resumed.apply_batch(steps[k:k + 7], [s for s in scans if k <= s.t < k + 7], fixes, site).estimates
     assert got == expected
 
 
