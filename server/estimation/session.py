@@ -272,6 +272,7 @@ class SessionEstimator:
             if result.refused_fix is not None:
                 rejected.append(ScanNote(i, result.refused_fix, applied_scans - 1))
             elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
+                  and strongest_level(item.rss, site.beacons) in (None, (e.building, e.floor))
                   and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
                 point = make_crowd_point(e.x, e.y, e.floor, item.rss, e.building)
                 crowd.append(CrowdCandidate(point, item))
@@ -525,6 +526,17 @@ def time_order(steps: list[Step], scans: list[Scan]) -> list[tuple[str, int, Ste
     return items
 
 
+def strongest_level(rss: dict[str, float], beacons: dict[str, Beacon]) -> tuple[int, int] | None:
+    """(building, floor) of the strongest heard transmitter whose position has a floor; None when
+    the scan hears none. A floor slab costs a signal 10–20 dB, so that transmitter is usually on
+    the walker's floor: the floor a multilateration takes, and a check on a crowd point's floor."""
+    heard = [(v, beacons[k]) for k, v in rss.items() if k in beacons and beacons[k].floor is not None]
+    if not heard:
+        return None
+    b = max(heard, key=lambda vb: vb[0])[1]
+    return b.building or 0, int(b.floor or 0)  # (b.floor is not None: filtered above)
+
+
 def multilateration_fix(
     rss: dict[str, float],
     beacons: dict[str, Beacon],
@@ -542,9 +554,9 @@ def multilateration_fix(
     heard = sorted(((v, beacons[k]) for k, v in rss.items() if k in beacons), key=lambda vb: -vb[0])
     floor, building = floor_hint, building_hint or 0
     if floor is None:
-        strongest = next((b for _, b in heard if b.floor is not None), None)
+        strongest = strongest_level(rss, beacons)
         if strongest is not None:
-            floor, building = strongest.floor, strongest.building or 0
+            building, floor = strongest
     anchors = [(v, b) for v, b in heard if floor is not None and b.on(building, floor)][:max_anchors]
     if floor is None or not anchors:
         return None

@@ -221,3 +221,32 @@ def test_walls_come_from_the_site_not_from_the_stored_state():
     replanned = SiteMap(walls={(0, 0): [[-1.0, 5.0, 1.0, 5.0], [3.0, -1.0, 3.0, 1.0]]})
     back.apply_batch([Step(2.0, 0.7, 0.0)], [], _NoFixes(), replanned)
     assert len(back.tracker.walls) == 2
+
+
+class _FixAt:
+    """The fingerprint model's answer for every scan: here, on floor ``floor``, 0.5 m σ."""
+
+    def __init__(self, x: float, y: float, floor: int):
+        self.fix_ = Fix(x, y, floor, np.eye(2) * 0.25)
+
+    def fix(self, scan: Scan, near) -> Fix:
+        return self.fix_
+
+
+def test_a_crowd_point_needs_the_strongest_positioned_transmitter_on_its_floor():
+    """A tight estimate that agrees with its scan's fix is a crowd candidate, unless the strongest
+    transmitter the scan hears that has a known floor is on another floor: a session and a map that
+    agree on the wrong floor (a floor change not yet confirmed, a map that learned floor 1 where
+    floor 0 is) must not teach the map more of it. Scans that hear no positioned transmitter keep the
+    old rule."""
+    site = SiteMap(beacons={"ble:down": Beacon("ble:down", 3.0, 4.0, 0), "ble:here": Beacon("ble:here", 5.0, 4.0, 1)})
+    candidates = {}
+    for name, rss in {"floor 1 strongest": {"ble:here": -60.0, "ble:down": -75.0},
+                      "floor 0 strongest": {"ble:here": -78.0, "ble:down": -62.0},
+                      "none positioned": {"wifi:x": -60.0, "wifi:y": -70.0, "wifi:z": -72.0}}.items():
+        est = SessionEstimator("ekf", seed=1)
+        est.start([4.0, 4.0], np.eye(2) * 0.25, 1, [], 0.0, "init")
+        rss = {**rss, "wifi:a": -65.0, "wifi:b": -70.0}  # (the gate wants 3 transmitters)
+        out = est.apply_batch([], [Scan(1.0, rss)], _FixAt(4.0, 4.0, 1), site, crowdsourcing=True)
+        candidates[name] = len(out.crowd)
+    assert candidates == {"floor 1 strongest": 1, "floor 0 strongest": 0, "none positioned": 1}
