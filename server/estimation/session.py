@@ -530,11 +530,12 @@ def strongest_level(rss: dict[str, float], beacons: dict[str, Beacon]) -> tuple[
     """(building, floor) of the strongest heard transmitter whose position has a floor; None when
     the scan hears none. A floor slab costs a signal 10–20 dB, so that transmitter is usually on
     the walker's floor: the floor a multilateration takes, and a check on a crowd point's floor."""
-    heard = [(v, beacons[k]) for k, v in rss.items() if k in beacons and beacons[k].floor is not None]
+    heard = [(v, b.building or 0, b.floor) for k, v in rss.items()
+             if (b := beacons.get(k)) is not None and b.floor is not None]
     if not heard:
         return None
-    b = max(heard, key=lambda vb: vb[0])[1]
-    return b.building or 0, int(b.floor or 0)  # (b.floor is not None: filtered above)
+    _, building, floor = max(heard, key=lambda h: h[0])
+    return building, floor
 
 
 def multilateration_fix(

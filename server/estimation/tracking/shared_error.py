@@ -41,8 +41,8 @@ only shrink D further), as is a Student-t weight's widening of R: the report err
 narrow. Beacon ranges count: left out, a session whose fixes say little (a degenerate start, a
 floor whose map is poor) but whose ranges place it well kept the start's excess for good (the
 multi-floor crowd benchmark's ground floor reported σ ≈ 500 m on a tracker sure within 1 m, and no
-estimate there ever passed the crowd gate). Known-start sessions whose fixes carry no share leave D = C = 0 and report P
-exactly.
+estimate there ever passed the crowd gate). Known-start sessions whose fixes carry no share leave
+D = C = 0 and report P exactly.
 """
 
 from __future__ import annotations
