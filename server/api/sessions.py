@@ -136,7 +136,8 @@ def get_track(
     smoothed: Annotated[bool, Query(description=(
         "Extension. true: the track after a fixed-interval smoother (same length, times, floors and "
         "sources; each position uses the fixes after it too; `smoother` says which) — the best "
-        "after-the-fact path, for replay and analytics; covariances calibrated like the live ones'. "
+        "after-the-fact path, for replay and analytics; covariances calibrated like the live ones'; 409 if "
+        "the smoother fails numerically on the stored track (the live track is unaffected). "
         "false (default): the live track as estimated."))] = False,
     smoother: Annotated[Literal["rts", "particles"], Query(description=(
         "Extension, with `smoothed=true`. `rts` (default): the RTS smoother over the stored estimates, for "

@@ -347,9 +347,9 @@ class LateInputs(ValueError):
 
 
 class TrackerFailure(Exception):
-    """The tracker could not apply a batch's inputs: a numerical failure (a covariance no longer
-    positive definite, a singular innovation covariance). The estimator is then in an undefined
-    state and must be dropped; ``str(exc)`` says which tracker failed and how."""
+    """The tracker could not apply a batch's inputs, or the smoother its stored track: a numerical
+    failure (a covariance no longer positive definite, a singular innovation covariance). The
+    estimator is then in an undefined state and must be dropped; ``str(exc)`` says what failed and how."""
 
 
 class NoFix(Exception):

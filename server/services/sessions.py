@@ -201,7 +201,12 @@ class SessionService:
         # the site as the batches use it (its context, cached by revision)
         site = self.sites.get(row.site_id, row.site_revision).map
         if kept is None:
-            return smooth_track(track, site.walkable, states), marks
+            try:
+                return smooth_track(track, site.walkable, states), marks
+            except TrackerFailure as failure:  # (nothing is stored: the live track stays as it is)
+                log.warning("session %s: %s", session_id, failure, exc_info=True)
+                raise Conflict([{"field": "smoothed", "msg": f"session {session_id}: {failure}; its live track "
+                                 "(smoothed=false) is unaffected"}]) from None
         by_replay = _replayed(*kept, site, track)
         if by_replay is None:
             raise Conflict([{"field": "smoother", "msg": (

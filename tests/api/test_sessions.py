@@ -485,6 +485,27 @@ def test_a_batch_the_tracker_fails_on_is_refused_and_the_session_goes_on(device,
     assert len(device.get(f"/api/v1/sessions/{sid}/track").json()) == len(track_before) + 2
 
 
+def test_a_smoother_that_fails_numerically_is_a_409_and_the_live_track_stays(device, site, monkeypatch):
+    """The RTS recursion inverts each predicted covariance; should one be singular (injected here) the
+    smoothed track is a 409 naming the failure, not a 500, and the live track reads as before."""
+    from server.estimation.tracking import smoother
+
+    sid = open_session(device, site, "ekf")["id"]
+    for i in range(3):
+        assert device.post(f"/api/v1/sessions/{sid}/batches", json=batch(i, 2.0 * i)).status_code == 200
+    live = device.get(f"/api/v1/sessions/{sid}/track").json()
+    assert device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"}).status_code == 200
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(smoother, "_rts", singular)
+    answer = device.get(f"/api/v1/sessions/{sid}/track", params={"smoothed": "true"})
+    assert answer.status_code == 409, answer.text
+    assert "could not be smoothed" in answer.text and "LinAlgError" in answer.text and "smoothed" in answer.text
+    assert device.get(f"/api/v1/sessions/{sid}/track").json() == live
+
+
 def test_a_session_survives_a_server_restart_mid_walk(live_server, device, site, clean_db):
     sid = open_session(device, site, "skpf")["id"]
     answers = [device.post(f"/api/v1/sessions/{sid}/batches", json=batch(i, 2.0 * i, 3)).json() for i in range(3)]

@@ -63,7 +63,7 @@ import numpy as np
 from server.estimation.tracking import selfcal
 from server.estimation.tracking.base import symmetric
 from server.estimation.tracking.shared_error import positive_part
-from server.estimation.types import Estimate, FullState, StepJoint
+from server.estimation.types import Estimate, FullState, StepJoint, TrackerFailure
 
 if TYPE_CHECKING:  # (floorplan imports tracking.geometry, and so this package)
     from server.estimation.floorplan import Walkable
@@ -188,7 +188,17 @@ def smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walk
     """The RTS-smoothed track: same length, times, floors and sources; smoothed means and
     covariances. ``areas``: walkable areas by (building, floor); smoothed positions are kept in them.
     ``states``: per estimate, the self-calibrating tracker's whole state (``FullState``); a floor's
-    run of estimates that all have one is smoothed over the whole state, any other over the position."""
+    run of estimates that all have one is smoothed over the whole state, any other over the position.
+    Raises ``TrackerFailure`` when the recursion fails numerically (a singular predicted covariance)."""
+    try:
+        return _smooth_track(track, areas, states)
+    except (np.linalg.LinAlgError, ArithmeticError) as exc:
+        raise TrackerFailure(f"the track could not be smoothed ({type(exc).__name__}: {exc})") from exc
+
+
+def _smooth_track(track: Sequence[Estimate], areas: Mapping[tuple[int, int], Walkable] | None,
+                  states: Sequence[FullState | None] | None) -> list[Estimate]:
+    """`smooth_track` without its failure's translation."""
     out: list[Estimate] = list(track)
     for a, b in _segments(track):
         # time indexes: a new one at every step estimate (and at the segment's first estimate)
