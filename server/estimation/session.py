@@ -39,7 +39,6 @@ from server.estimation.tracking import (
 from server.estimation.tracking.base import TRACKERS, Tracker, fix_cov
 from server.estimation.tracking.crowd import gate, make_crowd_point
 from server.estimation.tracking.fixnoise import FixNoiseScale, student_t_factor
-from server.estimation.tracking.measurements import log_range, log_range_H
 from server.estimation.tracking.shared_error import SharedFixError
 from server.estimation.types import (
     Area,
@@ -389,12 +388,10 @@ class SessionEstimator:
         """A beacon range, and what it does to ``shared_error`` when the tracker used it."""
         assert self.tracker is not None
         considered = self._considered()
-        prior = None if considered is None else (considered.state_mean, considered.state_covariance)
-        if self.tracker.update_range(beacon_xy, range_m, std_m) and prior is not None:
+        prior = None if considered is None else np.array(considered.state_covariance, float)
+        if self.tracker.update_range(beacon_xy, range_m, std_m) and considered is not None and prior is not None:
             n = selfcal.N_AUG
-            _, sigma = log_range(range_m, std_m)
-            self.shared_error.measured(prior[1][:n, :n], log_range_H(prior[0][:n], np.asarray(beacon_xy, float)),
-                                       sigma**2)
+            self.shared_error.measured(prior[:n, :n], considered.state_covariance[:n, :n])
 
     def _snap(self, snap: Snap, building: int, floor: int) -> str | None:
         """A landmark snap. A self-calibrating tracker takes it as a measurement, N(beacon,

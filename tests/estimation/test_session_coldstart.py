@@ -144,13 +144,15 @@ def test_degenerate_fixes_at_a_cold_start_or_a_floor_change_keep_the_track_on_th
         assert est.tracker is not None and np.linalg.eigvalsh(est.tracker.covariance)[-1] < 1.5 * START_MAX_STD_M**2
 
 
-@pytest.mark.parametrize("name", ["ekf", "pf"])  # (the ukf's sigma points, 26 m out, hardly move on ranges this close)
-def test_ranges_that_place_the_walker_shrink_what_a_degenerate_start_left_in_the_report(name):
+@pytest.mark.parametrize(("name", "placed"), [("ekf", True), ("pf", True), ("ukf", False)])
+def test_ranges_that_place_the_walker_shrink_what_a_degenerate_start_left_in_the_report(name, placed):
     """Started on such a fix, the tracker is capped at 15 m but the report keeps the fix's 10⁵ m
     across the transmitters' line as the start's excess. Beacons heard at known ranges then place
     the walker within a metre: the reported covariance follows the tracker's down (left out of the
     excess, it stayed at σ ≈ 300 m, and on the multi-floor crowd benchmark's ground floor no
-    estimate ever passed the crowd gate)."""
+    estimate ever passed the crowd gate). The ukf, whose sigma points lie ±30 m out where every one
+    sees nearly the same log-range, takes almost nothing from ranges this close: its report keeps the
+    excess as its own covariance keeps its width (the excess goes as the tracker's own, never faster)."""
     beacons = {f"ble:{i}": Beacon(f"ble:{i}", x, y, 1, -59.0, 2.0) for i, (x, y) in
                enumerate([(27.5, 0.0), (30.5, 2.5), (29.0, -1.5), (27.0, 2.5)])}  # (ranges under 3 m)
     truth = np.array([29.0, 1.0])
@@ -164,9 +166,13 @@ def test_ranges_that_place_the_walker_shrink_what_a_degenerate_start_left_in_the
         last = est.scan(Scan(0.5 * i, rss), DEGENERATE[i % 3], site).estimate
     assert est.tracker is not None
     own = float(np.trace(np.asarray(est.tracker.covariance)[:2, :2]))
-    assert own < 5.0
-    assert np.trace(last.covariance) < 3.0 * own
-    assert np.hypot(last.x - truth[0], last.y - truth[1]) < 3.0
+    reported = float(np.trace(last.covariance))
+    assert own <= reported
+    if placed:
+        assert own < 5.0 and reported < 2.0  # (within the crowd gate's trace, from 10⁶ m²)
+        assert np.hypot(last.x - truth[0], last.y - truth[1]) < 3.0
+    else:
+        assert own > 100.0 and reported > 1e3
 
 
 def test_the_search_box_waits_until_the_tracker_is_localised_within_it():

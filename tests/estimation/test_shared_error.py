@@ -64,9 +64,10 @@ def test_the_excess_is_the_filters_true_error_covariance_when_fixes_share_an_off
 
 
 def test_a_beacon_range_takes_from_the_excess_what_it_takes_from_the_error():
-    """A scalar measurement that shares nothing with the fixes (a beacon range, linearised row h):
-    after a fix that shares its error, P + D is still the error's true covariance and C its
-    covariance with the walk's offset (the exact joint propagation, 6 × 6)."""
+    """A scalar measurement that shares nothing with the fixes (a beacon range, linearised row h),
+    told to the excess by the tracker's covariance before and after it: after a fix that shares its
+    error, P + D is still the error's true covariance and C its covariance with the walk's offset
+    (the exact joint propagation, 6 × 6)."""
     P = np.diag([4.0, 9.0, math.radians(5) ** 2, 0.05**2])
     P[0, 2] = P[2, 0] = 0.02
     joint = np.zeros((6, 6))
@@ -84,9 +85,10 @@ def test_a_beacon_range_takes_from_the_excess_what_it_takes_from_the_error():
     joint[:4, :4] += K @ ((1 - rho) * R) @ K.T
     for h, var in ((np.array([0.08, -0.06, 0.0, 0.0]), 0.04), (np.array([-0.02, 0.1, 0.0, 0.0]), 0.09)):
         k = P @ h / (h @ P @ h + var)
-        shared.measured(P, h[None, :], var)
         A = np.eye(4) - np.outer(k, h)
-        P = A @ P @ A.T + var * np.outer(k, k)
+        P_post = A @ P @ A.T + var * np.outer(k, k)  # (what the tracker's update leaves: Joseph form)
+        shared.measured(P, P_post)
+        P = P_post
         T = np.eye(6)
         T[:4, :4] = A
         joint = T @ joint @ T.T

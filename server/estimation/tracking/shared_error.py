@@ -22,8 +22,8 @@ P leaves out) and C = E[e uᵀ]:
   gain of the Gaussian filters and the PF's cloud moments alike), A = I − KH:
   C ← A C + √ρ K L, D ← A D Aᵀ + √ρ (A C Lᵀ Kᵀ + K L Cᵀ Aᵀ) (the shared part's own √ρL·√ρLᵀ
   is already in the filter's R);
-- a measurement sharing nothing (a landmark snap; a beacon range, with A = I − K H from its
-  linearised log-range row H, `measured`): D ← A D Aᵀ, C ← A C;
+- a measurement sharing nothing (a landmark snap; a beacon range, with A = P⁺ P⁻⁻¹ from the
+  tracker's own covariances before and after it, `measured`): D ← A D Aᵀ, C ← A C;
 - a restart on a fix (cold start, floor change): the position's error is that fix's error, so
   its rows of C are √ρ L and of D what the start's covariance leaves out of the fix's (the bias
   and scale keep theirs).
@@ -122,15 +122,19 @@ class SharedFixError:
             C = C + KL
         self.D, self.C = 0.5 * (D + D.T), C
 
-    def measured(self, P_prior: np.ndarray, H: np.ndarray, var: float) -> None:
-        """A scalar measurement sharing nothing with the fixes (a beacon range), row ``H`` (1×4 or
-        4) on the state, variance ``var``, taken on the prior state covariance ``P_prior``: the
-        part of the excess it observes goes as it does from the tracker's (D ← A D Aᵀ, C ← A C)."""
-        P = np.asarray(P_prior, float)
-        h = np.asarray(H, float).reshape(-1)[:N_AUG]
-        Ph = P @ h
-        K = Ph / (float(h @ Ph) + float(var))
-        A = np.eye(N_AUG) - np.outer(K, h)
+    def measured(self, P_prior: np.ndarray, P_post: np.ndarray) -> None:
+        """A measurement sharing nothing with the fixes (a beacon range) that took the tracker's
+        state covariance from ``P_prior`` to ``P_post`` (4×4): the excess goes as the tracker's own
+        did, D ← A D Aᵀ, C ← A C with A = P_post P_prior⁻¹ — the update's I − K H for a Kalman
+        filter, its statistical linearisation for a UKF or a cloud, whatever the measurement model.
+        (A linearised gain instead would take a range from D that a UKF whose sigma points lie far
+        beyond the beacon never took from itself: the report would err narrow.) A singular prior
+        leaves D and C as they are (the report errs wide)."""
+        try:
+            At = np.linalg.solve(np.asarray(P_prior, float), np.asarray(P_post, float).T)
+        except np.linalg.LinAlgError:
+            return
+        A = At.T
         D = A @ self.D @ A.T
         self.D, self.C = 0.5 * (D + D.T), A @ self.C
 
