@@ -388,10 +388,13 @@ class SessionEstimator:
         """A beacon range, and what it does to ``shared_error`` when the tracker used it."""
         assert self.tracker is not None
         considered = self._considered()
-        prior = None if considered is None else np.array(considered.state_covariance, float)
-        if self.tracker.update_range(beacon_xy, range_m, std_m) and considered is not None and prior is not None:
-            n = selfcal.N_AUG
-            self.shared_error.measured(prior[:n, :n], considered.state_covariance[:n, :n])
+        if considered is None:
+            self.tracker.update_range(beacon_xy, range_m, std_m)
+            return
+        n = selfcal.N_AUG
+        prior = np.array(considered.state_covariance, float)[:n, :n]
+        if self.tracker.update_range(beacon_xy, range_m, std_m):
+            self.shared_error.measured(prior, considered.state_covariance[:n, :n])
 
     def _snap(self, snap: Snap, building: int, floor: int) -> str | None:
         """A landmark snap. A self-calibrating tracker takes it as a measurement, N(beacon,
