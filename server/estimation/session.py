@@ -270,9 +270,9 @@ class SessionEstimator:
                 rejected_snaps.append(ScanNote(i, result.refused_snap, applied_scans - 1))
             if result.refused_fix is not None:
                 rejected.append(ScanNote(i, result.refused_fix, applied_scans - 1))
-            elif (crowdsourcing and not cold and (e.building, e.floor) == (fix.building, fix.floor)
-                  and strongest_level(item.rss, site.beacons) in (None, (e.building, e.floor))
-                  and gate([e.x, e.y], e.covariance, fix.mean, item.rss)):
+            elif crowdsourcing and not cold and gate([e.x, e.y], e.covariance, fix.mean, item.rss,
+                                                     level=(e.building, e.floor), fix_level=(fix.building, fix.floor),
+                                                     heard_level=strongest_level(item.rss, site.beacons)):
                 point = make_crowd_point(e.x, e.y, e.floor, item.rss, e.building)
                 crowd.append(CrowdCandidate(point, item))
         return BatchOutcome(

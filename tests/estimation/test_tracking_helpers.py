@@ -99,6 +99,10 @@ def test_crowd_gate():
     assert not gate(**{**ok, "fix_mean": [5, 1]})  # 4 m apart > 3
     assert not gate(**{**ok, "rss": {"a": -60}})
     assert "trace" in gate(**{**ok, "estimate_cov": np.eye(2) * 5}).reason
+    assert gate(**ok, level=(0, 1), fix_level=(0, 1), heard_level=(0, 1))
+    assert not gate(**ok, level=(0, 1), fix_level=(0, 2))
+    refused = gate(**ok, level=(0, 1), fix_level=(0, 1), heard_level=(0, 0))
+    assert not refused and "strongest positioned transmitter" in refused.reason
 
 
 def test_crowd_merge_within_1m_else_insert():

@@ -4,8 +4,10 @@ A crowd point is a ``CrowdPoint`` (``server.estimation.types``).
 
 Gating (``gate``) keeps a drifting session from poisoning the map: the tracker's
 estimate must be tight (covariance trace small) and agree with the fingerprint
-model's fix for the same scan (distance small), and the scan must hear enough
-transmitters. Merging (``find_merge_target``, ``merge_points``): a new point within 1 m of a stored
+model's fix for the same scan (same floor, distance small), its floor must be the one
+of the strongest positioned transmitter the scan hears (where it hears one: a session
+and a map that agree on the wrong floor must not teach the map more of it), and the
+scan must hear enough transmitters. Merging (``find_merge_target``, ``merge_points``): a new point within 1 m of a stored
 point on the same floor is averaged into the nearest one (position weighted by point
 counts, RSS as a running mean per transmitter with its own count); otherwise it is
 inserted.
@@ -40,8 +42,17 @@ def gate(
     max_cov_trace_m2: float = 2.0,
     max_disagreement_m: float = 3.0,
     min_transmitters: int = 3,
+    level: tuple[int, int] | None = None,
+    fix_level: tuple[int, int] | None = None,
+    heard_level: tuple[int, int] | None = None,
 ) -> GateDecision:
-    """Whether (estimate, scan) is confident enough to become a crowd fingerprint."""
+    """Whether (estimate, scan) is confident enough to become a crowd fingerprint. ``level``: the
+    estimate's (building, floor); ``fix_level``: the fix's; ``heard_level``: the strongest heard
+    positioned transmitter's (``session.strongest_level``); each None: not checked."""
+    if level is not None and fix_level is not None and fix_level != level:
+        return GateDecision(False, f"estimate on level {level}, its fix on {fix_level}")
+    if level is not None and heard_level is not None and heard_level != level:
+        return GateDecision(False, f"the strongest positioned transmitter heard is on level {heard_level}, not {level}")
     trace = float(np.trace(np.asarray(estimate_cov, float)))
     if not math.isfinite(trace) or trace > max_cov_trace_m2:
         return GateDecision(False, f"covariance trace {trace:.2f} m² > {max_cov_trace_m2}")
