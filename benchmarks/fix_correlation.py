@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.msft_fingerprint import walk_rows  # noqa: E402
 from benchmarks.scenario_family import ModelFixes, World, distance_walked, draw, located, walk  # noqa: E402
 from benchmarks.shared_data import SHARED_DATA  # noqa: E402
+from client_sim.errors import number  # noqa: E402
 from client_sim.phone import simulate_phone  # noqa: E402
 from client_sim.radio import RadioModel  # noqa: E402
 from client_sim.runs import survey_fingerprints  # noqa: E402
@@ -123,11 +124,11 @@ def correlation(sums: np.ndarray) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("data_dir", nargs="?", default=str(SHARED_DATA / "msft_site1_f1"))
-    ap.add_argument("--folds", type=int, default=4)
+    ap.add_argument("--folds", type=number(int, 2), default=4)
     ap.add_argument("--algorithm", default="knn")
     ap.add_argument("--simulator", choices=["tune", "heldout", "stress"], help="the simulator's scenarios instead")
     ap.add_argument("--client-sim", metavar="SCENARIO", help="client_sim's walks of that world instead")
-    ap.add_argument("--n", type=int, default=12, help="with --simulator: scenarios 0..n-1; with --client-sim: walks")
+    ap.add_argument("--n", type=number(int, 1), default=12, help="with --simulator: scenarios 0..n-1; with --client-sim: walks")
     ap.add_argument("--by", choices=["walked", "place"], default="walked",
                     help="d: the distance walked between two fixes, or between their true positions")
     a = ap.parse_args()
